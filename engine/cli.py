@@ -1,0 +1,83 @@
+"""Command-line interface: ``python -m engine <command> ...``.
+
+Each command lives in ``engine/commands/<name>.py`` and exposes ``HELP`` (one line),
+``add_arguments(parser)`` and ``run(args, reporter) -> int | None``. Modules import
+their heavy dependencies (torch, cv2, ...) inside ``run`` so ``--help`` stays instant.
+To add a command, add its module name to :data:`COMMANDS`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import signal
+import sys
+
+from . import __version__
+from .errors import EngineError
+from .protocol import Reporter
+
+#: Command modules under ``engine.commands``, in the order ``--help`` lists them.
+COMMANDS = (
+    "version",
+    "selftest",
+)
+
+
+def _common_options() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--jsonl", action="store_true",
+                        help="write progress/log/result/error events as JSON lines on stdout (used by the add-on)")
+    common.add_argument("--quiet", action="store_true", help="no progress bars; warnings and errors only")
+    common.add_argument("--threads", type=int, default=None,
+                        help="CPU threads for torch and the CPU rasteriser (default: all cores)")
+    return common
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m engine",
+        description="Motion Splats engine: monocular video -> node-driven dynamic Gaussian splats.",
+    )
+    parser.add_argument("--version", action="version", version=f"motion-splats engine {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    common = _common_options()
+    for name in COMMANDS:
+        module = importlib.import_module(f".commands.{name}", __package__)
+        cmd = sub.add_parser(name, help=module.HELP, description=module.__doc__, parents=[common],
+                             formatter_class=argparse.RawDescriptionHelpFormatter)
+        module.add_arguments(cmd)
+        cmd.set_defaults(_module=module)
+    return parser
+
+
+def _raise_keyboard_interrupt(signum, frame):  # SIGTERM -> same clean path as Ctrl-C
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    reporter = Reporter(jsonl=args.jsonl, quiet=args.quiet)
+    if args.threads:
+        import os
+
+        os.environ.setdefault("MOTION_SPLATS_THREADS", str(args.threads))
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    try:
+        code = args._module.run(args, reporter)
+        return int(code or 0)
+    except EngineError as exc:
+        reporter.error(getattr(exc, "message", str(exc)), path=getattr(exc, "path", None), fix=getattr(exc, "fix", None))
+        return exc.exit_code
+    except KeyboardInterrupt:
+        reporter.error("interrupted; state saved where the command supports it", fix="re-run with --resume")
+        return 130
+    except Exception as exc:  # report, then let the traceback reach stderr for bug reports
+        reporter.error(f"internal error: {type(exc).__name__}: {exc}")
+        if not args.jsonl:
+            raise
+        import traceback
+
+        traceback.print_exc(file=sys.stderr)
+        return 1

@@ -1,0 +1,1 @@
+"""One module per ``python -m engine`` sub-command (see :mod:`engine.cli`)."""

@@ -1,0 +1,18 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Blender-side package `operators` (may import bpy)."""
+
+import bpy
+
+# Classes registered by this package, in dependency order. Modules of this package
+# append their classes here when they are added to the product.
+CLASSES: tuple = ()
+
+_register, _unregister = bpy.utils.register_classes_factory(CLASSES)
+
+
+def register():
+    _register()
+
+
+def unregister():
+    _unregister()
