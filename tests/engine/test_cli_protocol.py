@@ -1,0 +1,63 @@
+"""The CLI entry point, the JSON-lines protocol and atomic writes."""
+
+import io
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from engine import fsutil
+from engine.protocol import PROTOCOL_VERSION, Reporter, parse_event
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def _engine(*args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "engine", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_help_lists_commands():
+    out = _engine("--help")
+    assert out.returncode == 0
+    assert "selftest" in out.stdout and "version" in out.stdout
+
+
+def test_selftest_reports_versions_as_json_lines():
+    out = _engine("selftest", "--jsonl")
+    assert out.returncode == 0, out.stderr
+    events = [parse_event(line) for line in out.stdout.splitlines()]
+    assert events and all(events)
+    result = events[-1]
+    assert result["event"] == "result" and result["ok"] is True
+    for name in ("torch", "numpy", "cv2", "onnxruntime", "pycolmap"):
+        assert result["versions"][name]
+
+
+def test_reporter_events_parse_back():
+    stream = io.StringIO()
+    rep = Reporter(jsonl=True, stream=stream)
+    rep.progress("train", 5, 10, loss=0.5, psnr=float("nan"))
+    rep.log("hello")
+    rep.error("bad", path="/x.json", fix="do y")
+    events = [parse_event(line) for line in stream.getvalue().splitlines()]
+    assert [e["event"] for e in events] == ["progress", "log", "error"]
+    assert events[0]["v"] == PROTOCOL_VERSION and events[0]["psnr"] is None and "eta_s" in events[0]
+    assert events[2]["path"] == "/x.json"
+
+
+@pytest.mark.parametrize("line", ["", "garbage", "{", "[1,2]", '{"v": 1}', '{"v": 2, "event": "log", "message": "x"}',
+                                  '{"v": 1, "event": "progress"}', '{"v": 1, "event": "nope"}', "{" * 5000])
+def test_parse_event_rejects_garbage(line):
+    assert parse_event(line) is None
+
+
+def test_atomic_write_keeps_old_file_on_failure(tmp_path):
+    target = tmp_path / "a.json"
+    fsutil.atomic_write_json(target, {"a": 1})
+    with pytest.raises(ValueError):
+        fsutil.atomic_write_json(target, {"a": float("nan")})
+    assert json.loads(target.read_text()) == {"a": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["a.json"]  # no temp files left behind
