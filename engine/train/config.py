@@ -1,0 +1,184 @@
+"""Training configuration: one typed dataclass, three presets, written into the bundle.
+
+Every hyper-parameter of a reconstruction lives in :class:`TrainConfig`. Presets set
+sizes and step counts for the hardware they target:
+
+``preview``   minutes on a 2-core CPU for a ~60-frame clip at ~240 px wide.
+``standard``  a longer CPU run / a short GPU run.
+``high``      GPU-sized (full resolution, more Gaussians and steps).
+
+A config round-trips through JSON (``to_dict``/``from_dict``); unknown keys or values of
+the wrong type are refused with a message naming the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..errors import InputError
+
+INIT_METHODS = ("mani", "fps", "voxel", "tracklet")
+MOTION_MODELS = ("spline", "mlp", "per_frame")
+
+
+@dataclass
+class LossWeights:
+    """Weights of the composite loss (paper Eq. 'loss'); 0 switches a term off."""
+
+    rgb: float = 1.0          # L1 + D-SSIM photometric
+    ssim: float = 0.2         # D-SSIM share inside the photometric term (3DGS uses 0.2)
+    mask: float = 0.1         # rendered alpha vs the foreground/dynamic prior on dynamic pixels
+    depth: float = 0.05       # scale/shift-invariant depth vs the depth prior
+    track: float = 0.05       # projected deformed node/Gaussian positions vs 2D tracks (pixels / image size)
+    arap: float = 1.0         # as-rigid-as-possible on the node graph
+    velocity: float = 1e-3    # mild spline velocity regulariser
+    acceleration: float = 1e-2  # mild spline acceleration regulariser
+
+
+@dataclass
+class TrainConfig:
+    """All hyper-parameters of one reconstruction run."""
+
+    preset: str = "preview"
+    seed: int = 0
+    device: str = "auto"                 # auto | cpu | cuda
+    backend: str = "auto"                # rasteriser backend: auto | reference | cpu | gsplat
+
+    # data
+    width: int = 240                     # training resolution (long side is scaled to this width)
+    max_frames: int = 0                  # 0 = all frames of the training split
+
+    # representation
+    init: str = "mani"                   # node initialiser: mani | fps | voxel | tracklet
+    motion: str = "spline"               # node motion model: spline | mlp | per_frame
+    num_nodes: int = 512                 # node budget for initialisation
+    num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
+    bind_k: int = 4                      # nodes per Gaussian (K in the paper)
+    rebind_every: int = 200              # refresh binding every N steps (0 = never)
+    sh_degree: int = 1
+    gaussians_per_frame: int = 3000      # back-projected at init from each keyframe
+    init_keyframes: int = 8              # frames sampled for Gaussian initialisation
+    max_gaussians: int = 30000           # budget cap for densification
+
+    # optimisation
+    steps: int = 600
+    warmup_static_steps: int = 50        # first steps train appearance with motion frozen
+    batch_frames: int = 1
+    lr_means: float = 1.6e-4             # relative to scene extent
+    lr_means_final: float = 1.6e-6
+    lr_quats: float = 1e-3
+    lr_scales: float = 5e-3
+    lr_opacity: float = 5e-2
+    lr_sh: float = 2.5e-3
+    lr_node_keys: float = 1e-3           # relative to scene extent
+    lr_node_rot: float = 1e-3
+    lr_mlp: float = 1e-3
+
+    # densification (3DGS-style, scaled to the run length)
+    densify_from: int = 100
+    densify_until: int = 450
+    densify_every: int = 50
+    densify_grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    opacity_prune: float = 0.005
+    opacity_reset_every: int = 0         # 0 = never (short runs do better without)
+
+    # bookkeeping
+    checkpoint_every: int = 200
+    log_every: int = 10
+    eval_every: int = 0                  # 0 = only at the end
+
+    loss: LossWeights = field(default_factory=LossWeights)
+
+    # ------------------------------------------------------------------------------
+    def validate(self, source: str | None = None) -> "TrainConfig":
+        def bad(key, why):
+            raise InputError(f"config value {key!r} {why}", source, "see `python -m engine train --help` for valid values")
+
+        if self.init not in INIT_METHODS:
+            bad("init", f"must be one of {INIT_METHODS}")
+        if self.motion not in MOTION_MODELS:
+            bad("motion", f"must be one of {MOTION_MODELS}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            bad("device", "must be auto, cpu or cuda")
+        if self.backend not in ("auto", "reference", "cpu", "gsplat"):
+            bad("backend", "must be auto, reference, cpu or gsplat")
+        if not 0 <= self.sh_degree <= 3:
+            bad("sh_degree", "must be 0..3")
+        for key in ("width", "steps", "num_nodes", "bind_k", "gaussians_per_frame", "init_keyframes",
+                    "max_gaussians", "batch_frames"):
+            if getattr(self, key) < 1:
+                bad(key, "must be >= 1")
+        if self.bind_k > self.num_nodes:
+            bad("bind_k", "cannot exceed num_nodes")
+        for f in dataclasses.fields(self.loss):
+            if getattr(self.loss, f.name) < 0:
+                bad(f"loss.{f.name}", "must be >= 0")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], source: str | None = None) -> "TrainConfig":
+        if not isinstance(data, dict):
+            raise InputError("training config must be a JSON object", source, "see docs for the config format")
+        known = {f.name: f for f in dataclasses.fields(cls)}
+        kwargs: dict[str, Any] = {}
+        for key, value in data.items():
+            if key not in known:
+                raise InputError(f"unknown config key {key!r}", source, f"valid keys: {sorted(known)}")
+            if key == "loss":
+                kwargs["loss"] = _loss_from_dict(value, source)
+                continue
+            default = getattr(cls(), key)
+            if isinstance(default, bool) or not isinstance(default, (int, float, str)):
+                kwargs[key] = value
+            elif isinstance(default, float) and isinstance(value, (int, float)) and not isinstance(value, bool):
+                kwargs[key] = float(value)
+            elif type(value) is not type(default):
+                raise InputError(f"config key {key!r} must be {type(default).__name__}, got {value!r}", source,
+                                 "fix the value's type")
+            else:
+                kwargs[key] = value
+        return cls(**kwargs).validate(source)
+
+
+def _loss_from_dict(data: Any, source: str | None) -> LossWeights:
+    if not isinstance(data, dict):
+        raise InputError("config key 'loss' must be an object", source, "e.g. {\"depth\": 0.1}")
+    known = {f.name for f in dataclasses.fields(LossWeights)}
+    for key, value in data.items():
+        if key not in known:
+            raise InputError(f"unknown loss weight {key!r}", source, f"valid: {sorted(known)}")
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise InputError(f"loss weight {key!r} must be a number", source, "fix the value")
+    return LossWeights(**{k: float(v) for k, v in data.items()})
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "preview": {},
+    "standard": dict(width=480, num_nodes=1024, steps=3000, gaussians_per_frame=8000, init_keyframes=12,
+                     max_gaussians=150_000, densify_from=300, densify_until=2200, densify_every=100,
+                     checkpoint_every=500, rebind_every=500, sh_degree=2, warmup_static_steps=200),
+    "high": dict(width=960, num_nodes=2048, steps=20000, gaussians_per_frame=30000, init_keyframes=16,
+                 max_gaussians=1_000_000, densify_from=500, densify_until=15000, densify_every=100,
+                 opacity_reset_every=3000, checkpoint_every=1000, rebind_every=1000, sh_degree=3,
+                 warmup_static_steps=500, device="auto"),
+}
+
+
+def preset_config(name: str, **overrides: Any) -> TrainConfig:
+    """The config of preset ``name`` with ``overrides`` applied (validated)."""
+    if name not in PRESETS:
+        raise InputError(f"unknown preset {name!r}", None, f"choose one of {sorted(PRESETS)}")
+    values = dict(PRESETS[name])
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    values["preset"] = name
+    loss = values.pop("loss", None)
+    cfg = TrainConfig.from_dict(values)
+    if loss is not None:
+        cfg.loss = loss if isinstance(loss, LossWeights) else _loss_from_dict(loss, None)
+    return cfg.validate()

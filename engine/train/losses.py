@@ -1,0 +1,173 @@
+"""Loss terms of the composite objective (paper Sec. 'Optimization').
+
+All functions are plain torch, differentiable, and document their shapes. Images are
+``[H, W, C]`` float in [0, 1].
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def l1(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean absolute error; ``weight`` broadcasts against ``pred`` ([H, W, 1] masks)."""
+    err = (pred - target).abs()
+    if weight is None:
+        return err.mean()
+    w = weight.expand_as(err)
+    return (err * w).sum() / w.sum().clamp_min(1e-8)
+
+
+def _gaussian_window(size: int, sigma: float, device, dtype) -> torch.Tensor:
+    x = torch.arange(size, device=device, dtype=dtype) - (size - 1) / 2
+    g = torch.exp(-(x * x) / (2 * sigma * sigma))
+    return g / g.sum()
+
+
+def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean structural similarity of two ``[H, W, C]`` images (Gaussian window, as in 3DGS).
+
+    Uses a separable Gaussian filter with zero padding ('same' size) like the 3DGS
+    reference, so values match what papers report.
+    """
+    c = pred.shape[-1]
+    x = pred.permute(2, 0, 1).unsqueeze(0)
+    y = target.permute(2, 0, 1).unsqueeze(0)
+    g = _gaussian_window(window, sigma, pred.device, pred.dtype)
+    gx = g.view(1, 1, 1, -1).expand(c, 1, 1, window)
+    gy = g.view(1, 1, -1, 1).expand(c, 1, window, 1)
+    pad = window // 2
+
+    def blur(img):
+        img = F.conv2d(img, gx, padding=(0, pad), groups=c)
+        return F.conv2d(img, gy, padding=(pad, 0), groups=c)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sxx = blur(x * x) - mu_x * mu_x
+    syy = blur(y * y) - mu_y * mu_y
+    sxy = blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    num = (2 * mu_x * mu_y + c1) * (2 * sxy + c2)
+    den = (mu_x * mu_x + mu_y * mu_y + c1) * (sxx + syy + c2)
+    return (num / den).mean()
+
+
+def photometric(pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
+    """3DGS photometric loss ``(1 - λ) L1 + λ (1 - SSIM)``; images ``[H, W, 3]``."""
+    loss = (1.0 - ssim_weight) * l1(pred, target)
+    if ssim_weight > 0:
+        loss = loss + ssim_weight * (1.0 - ssim(pred, target))
+    return loss
+
+
+def psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Peak signal-to-noise ratio in dB for images in [0, 1]; optional ``[H, W, 1]`` mask."""
+    err = (pred - target) ** 2
+    if mask is None:
+        mse = err.mean()
+    else:
+        w = mask.expand_as(err)
+        mse = (err * w).sum() / w.sum().clamp_min(1e-8)
+    return -10.0 * torch.log10(mse.clamp_min(1e-12))
+
+
+def depth_shift_scale_invariant(pred: torch.Tensor, target: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Depth loss invariant to an affine map of the target (MiDaS-style).
+
+    Solves ``min_{s,b} ||s·target + b − pred||²`` in closed form over valid pixels (no
+    gradient through ``s, b``), then returns the mean absolute residual relative to the
+    median predicted depth, so the loss is scale-free.
+
+    Parameters
+    ----------
+    pred : (H, W) rendered expected depth.
+    target : (H, W) prior depth (any affine-equivalent scale).
+    valid : (H, W) bool, pixels where both are meaningful.
+    """
+    p, t = pred[valid], target[valid]
+    if p.numel() < 16:
+        return pred.sum() * 0.0
+    with torch.no_grad():
+        a = torch.stack([t, torch.ones_like(t)], dim=1)
+        sol = torch.linalg.lstsq(a, p.unsqueeze(1)).solution.squeeze(1)
+        aligned = sol[0] * t + sol[1]
+        norm = p.detach().median().clamp_min(1e-6)
+    return (p - aligned).abs().mean() / norm
+
+
+def mask_loss(alpha: torch.Tensor, dyn_alpha: torch.Tensor, fg_prior: torch.Tensor) -> torch.Tensor:
+    """Mask term: the alpha rendered from dynamic Gaussians should match the fg prior.
+
+    Parameters
+    ----------
+    alpha : (H, W, 1) total rendered alpha (unused weight; kept for API symmetry).
+    dyn_alpha : (H, W, 1) alpha rendered with colours = per-Gaussian dynamic score.
+    fg_prior : (H, W) dynamic/foreground prior in [0, 1].
+    """
+    return F.binary_cross_entropy(dyn_alpha.squeeze(-1).clamp(1e-4, 1 - 1e-4), fg_prior.clamp(0, 1))
+
+
+def track_loss(proj_uv: torch.Tensor, target_uv: torch.Tensor, visible: torch.Tensor, scale: float) -> torch.Tensor:
+    """Mean Huber distance between projected positions and 2D tracks.
+
+    Parameters
+    ----------
+    proj_uv, target_uv : (P, 2) pixels.
+    visible : (P,) bool.
+    scale : pixels per unit error (e.g. image width), so the loss is resolution-free.
+    """
+    if visible.sum() == 0:
+        return proj_uv.sum() * 0.0
+    d = (proj_uv[visible] - target_uv[visible]) / scale
+    return F.huber_loss(d, torch.zeros_like(d), delta=0.05, reduction="mean")
+
+
+def arap_loss(pos_t0: torch.Tensor, pos_t1: torch.Tensor, rot_t1: torch.Tensor, graph_idx: torch.Tensor,
+              graph_w: torch.Tensor | None = None) -> torch.Tensor:
+    """As-rigid-as-possible on the node graph between two times.
+
+    For each node ``i`` and neighbour ``j``, the edge ``p_j − p_i`` at ``t1`` should be the
+    edge at ``t0`` rotated by node ``i``'s relative rotation ``R_i(t1)``:
+    ``|| (p_j(t1) − p_i(t1)) − R_i (p_j(t0) − p_i(t0)) ||²``.
+
+    Parameters
+    ----------
+    pos_t0, pos_t1 : (N, 3) node positions at two times.
+    rot_t1 : (N, 3, 3) node rotations at t1 relative to t0.
+    graph_idx : (N, k) neighbour indices.
+    graph_w : (N, k) optional edge weights.
+    """
+    e0 = pos_t0[graph_idx] - pos_t0[:, None, :]
+    e1 = pos_t1[graph_idx] - pos_t1[:, None, :]
+    r = (rot_t1[:, None, :, :] @ e0.unsqueeze(-1)).squeeze(-1)
+    err = ((e1 - r) ** 2).sum(-1)
+    if graph_w is not None:
+        return (err * graph_w).sum() / graph_w.sum().clamp_min(1e-8)
+    return err.mean()
+
+
+def spline_smoothness(keys: torch.Tensor, key_times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Velocity and acceleration energies of spline keys.
+
+    Parameters
+    ----------
+    keys : (N, K, C) spline keys.
+    key_times : (K,) key times.
+
+    Returns
+    -------
+    velocity, acceleration : scalars, mean squared first/second finite differences in
+    key-time units.
+    """
+    if keys.shape[1] < 2:
+        zero = keys.sum() * 0.0
+        return zero, zero
+    dt = (key_times[1:] - key_times[:-1]).clamp_min(1e-6)
+    vel = (keys[:, 1:] - keys[:, :-1]) / dt[None, :, None]
+    v = (vel ** 2).mean()
+    if keys.shape[1] < 3:
+        return v, keys.sum() * 0.0
+    dtm = 0.5 * (dt[1:] + dt[:-1])
+    acc = (vel[:, 1:] - vel[:, :-1]) / dtm[None, :, None]
+    return v, (acc ** 2).mean()

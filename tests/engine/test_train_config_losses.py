@@ -1,0 +1,77 @@
+"""Training config validation and the loss terms."""
+
+import math
+
+import pytest
+import torch
+
+from engine.errors import InputError
+from engine.train import losses as L
+from engine.train.config import PRESETS, TrainConfig, preset_config
+
+
+def test_presets_are_valid_and_round_trip():
+    for name in PRESETS:
+        cfg = preset_config(name)
+        assert cfg.preset == name
+        assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+
+
+@pytest.mark.parametrize("data,msg", [
+    ({"stepz": 3}, "unknown config key 'stepz'"),
+    ({"steps": "many"}, "steps"),
+    ({"init": "random"}, "init"),
+    ({"motion": "grid"}, "motion"),
+    ({"loss": {"rgb": "x"}}, "rgb"),
+    ({"loss": {"photo": 1}}, "photo"),
+    ({"sh_degree": 7}, "sh_degree"),
+])
+def test_bad_config_is_refused_with_the_key(data, msg):
+    with pytest.raises(InputError, match=msg):
+        TrainConfig.from_dict(data, "cfg.json")
+
+
+def test_ssim_identity_and_decrease():
+    torch.manual_seed(0)
+    img = torch.rand(32, 40, 3)
+    assert float(L.ssim(img, img)) == pytest.approx(1.0, abs=1e-5)
+    noisy = (img + 0.2 * torch.randn_like(img)).clamp(0, 1)
+    assert float(L.ssim(img, noisy)) < 0.9
+
+
+def test_psnr_matches_definition():
+    a = torch.zeros(8, 8, 3)
+    b = torch.full((8, 8, 3), 0.1)
+    assert float(L.psnr(a, b)) == pytest.approx(20.0, abs=1e-4)
+    mask = torch.zeros(8, 8, 1)
+    mask[:4] = 1
+    b2 = b.clone()
+    b2[4:] = 1.0  # errors outside the mask are ignored
+    assert float(L.psnr(a, b2, mask)) == pytest.approx(20.0, abs=1e-4)
+
+
+def test_depth_loss_is_affine_invariant():
+    torch.manual_seed(0)
+    d = torch.rand(20, 20) + 1.0
+    valid = torch.ones(20, 20, dtype=torch.bool)
+    assert float(L.depth_shift_scale_invariant(d, 3.0 * d + 0.5, valid)) < 1e-5
+    assert float(L.depth_shift_scale_invariant(d, torch.rand(20, 20), valid)) > 1e-2
+
+
+def test_arap_zero_for_rigid_motion_positive_otherwise():
+    torch.manual_seed(0)
+    p0 = torch.randn(30, 3)
+    ang = 0.7
+    R = torch.tensor([[math.cos(ang), -math.sin(ang), 0], [math.sin(ang), math.cos(ang), 0], [0, 0, 1.0]])
+    p1 = p0 @ R.T + torch.tensor([1.0, 2.0, 3.0])
+    graph = torch.randint(0, 30, (30, 4))
+    rot = R.expand(30, 3, 3)
+    assert float(L.arap_loss(p0, p1, rot, graph)) < 1e-10
+    assert float(L.arap_loss(p0, p1 * 1.5, rot, graph)) > 1e-3
+
+
+def test_spline_smoothness_zero_for_linear_motion():
+    kt = torch.tensor([0.0, 0.2, 0.5, 1.0])
+    keys = (kt[None, :, None] * torch.tensor([1.0, -2.0, 0.5])).expand(5, 4, 3)
+    vel, acc = L.spline_smoothness(keys, kt)
+    assert float(acc) < 1e-10 and float(vel) > 0
