@@ -1,0 +1,222 @@
+"""The dynamic scene model: canonical Gaussians driven by spline-parameterised nodes.
+
+A Gaussian ``g`` with canonical centre ``x_g`` and rotation ``q_g`` is moved at time
+``t`` by dual-quaternion blending of the transforms of its ``K_b`` bound nodes
+(paper Sec. 'Node-Based Deformation Representation')::
+
+    T_i(t) x = R(q_i(t)) (x − c_i) + p_i(t)          node transform (docs/architecture.md)
+    Q_g(t)   = normalise(Σ_i w_gi DQ(T_i(t)))         dual-quaternion blend
+    x_g(t)   = Q_g(t) · x_g,   q_g(t) = rot(Q_g(t)) ⊗ q_g
+
+Node motion comes from one of three models (``TrainConfig.motion``):
+
+``spline``     cubic Hermite keys (positions and quaternions) with Catmull-Rom tangents;
+               the paper's model.
+``per_frame``  one key per training frame (the same spline machinery, no smoothing).
+``mlp``        an SC-GS-style deformation MLP ``(c_i, t) -> (Δp, Δq)``, the baseline the
+               paper improves on.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn as nn
+
+from ..geometry.binding import bind_gaussians
+from ..geometry.dualquat import dq_apply_points, dq_apply_rotations, dq_blend, node_transforms_dq
+from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_eval_quat
+from ..geometry.quaternion import quat_normalize
+
+SH_C0 = 0.28209479177387814
+
+
+def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(1e-6, 1 - 1e-6)
+    return torch.log(x / (1 - x))
+
+
+def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
+    """NeRF positional encoding: ``[..., D] -> [..., D (1 + 2 num_freqs)]``."""
+    freqs = (2.0 ** torch.arange(num_freqs, device=x.device, dtype=x.dtype)) * math.pi
+    xf = x[..., None] * freqs
+    return torch.cat([x, torch.sin(xf).flatten(-2), torch.cos(xf).flatten(-2)], dim=-1)
+
+
+class DeformMLP(nn.Module):
+    """SC-GS-style node deformation field: ``(c_i, t) -> (Δp_i, Δq_i)``.
+
+    Input positions are normalised by the scene extent; the last layer starts at zero,
+    so the field starts as the identity motion.
+    """
+
+    def __init__(self, extent: float, width: int = 128, depth: int = 4, pos_freqs: int = 6, time_freqs: int = 6):
+        super().__init__()
+        self.extent = float(extent)
+        self.pos_freqs, self.time_freqs = pos_freqs, time_freqs
+        dim_in = 3 * (1 + 2 * pos_freqs) + (1 + 2 * time_freqs)
+        layers: list[nn.Module] = []
+        for i in range(depth):
+            layers += [nn.Linear(dim_in if i == 0 else width, width), nn.ReLU(inplace=True)]
+        self.trunk = nn.Sequential(*layers)
+        self.head = nn.Linear(width, 7)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, centers: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """centers [N, 3], scalar t -> (Δp [N, 3], quaternion [N, 4] wxyz)."""
+        n = centers.shape[0]
+        tt = torch.full((n, 1), float(t), device=centers.device, dtype=centers.dtype)
+        h = torch.cat([positional_encoding(centers / self.extent, self.pos_freqs),
+                       positional_encoding(tt, self.time_freqs)], dim=-1)
+        out = self.head(self.trunk(h))
+        dq = out[:, 3:]
+        q = quat_normalize(torch.cat([1.0 + dq[:, :1], dq[:, 1:]], dim=-1))
+        return out[:, :3] * self.extent, q
+
+
+class DynamicScene(nn.Module):
+    """Canonical Gaussians + nodes + node motion.
+
+    Parameters (all ``nn.Parameter``)
+    ---------------------------------
+    means [G, 3], quats [G, 4] (wxyz, unnormalised), log_scales [G, 3],
+    opacity_logits [G], sh_dc [G, 1, 3], sh_rest [G, M-1, 3];
+    node_log_radii [N]; spline/per_frame: pos_keys [N, K, 3], rot_keys [N, K, 4].
+
+    Buffers
+    -------
+    node_centers [N, 3] canonical node centres ``c_i``; key_times [K];
+    bind_idx [G, K_b], bind_w [G, K_b]; graph_idx [N, k]; node_p_dyn [N].
+    """
+
+    def __init__(self, means, colors, scales, opacities, node_centers, node_radii, key_times, pos_keys,
+                 rot_keys=None, sh_degree: int = 1, motion: str = "spline", bind_k: int = 4, graph_idx=None,
+                 node_p_dyn=None, extent: float = 1.0):
+        super().__init__()
+        g = means.shape[0]
+        n, k = pos_keys.shape[:2]
+        m = (sh_degree + 1) ** 2
+        self.sh_degree = sh_degree
+        self.motion = motion
+        self.bind_k = min(bind_k, n)
+        self.extent = float(extent)
+        dev, dt = means.device, means.dtype
+        self.means = nn.Parameter(means.clone())
+        q = torch.zeros(g, 4, device=dev, dtype=dt)
+        q[:, 0] = 1
+        self.quats = nn.Parameter(q)
+        self.log_scales = nn.Parameter(torch.log(scales.clamp_min(1e-7)).clone())
+        self.opacity_logits = nn.Parameter(inverse_sigmoid(opacities).clone())
+        self.sh_dc = nn.Parameter(((colors - 0.5) / SH_C0).view(g, 1, 3).clone())
+        self.sh_rest = nn.Parameter(torch.zeros(g, m - 1, 3, device=dev, dtype=dt))
+        self.node_log_radii = nn.Parameter(torch.log(node_radii.clamp_min(1e-6)).clone())
+        self.register_buffer("node_centers", node_centers.clone())
+        self.register_buffer("key_times", key_times.clone())
+        self.register_buffer("node_p_dyn", node_p_dyn.clone() if node_p_dyn is not None else torch.zeros(n, device=dev))
+        self.register_buffer("graph_idx", graph_idx.clone() if graph_idx is not None
+                             else torch.zeros(n, 0, dtype=torch.long, device=dev))
+        if motion == "mlp":
+            self.mlp = DeformMLP(extent).to(dev, dt)
+            # The MLP moves nodes relative to their canonical centres; the spline init
+            # (from tracks) is not used, as in SC-GS.
+            self.pos_keys = None
+            self.rot_keys = None
+        else:
+            self.mlp = None
+            self.pos_keys = nn.Parameter(pos_keys.clone())
+            if rot_keys is None:
+                rot_keys = torch.zeros(n, k, 4, device=dev, dtype=dt)
+                rot_keys[..., 0] = 1
+            self.rot_keys = nn.Parameter(rot_keys.clone())
+        self.register_buffer("bind_idx", torch.zeros(g, self.bind_k, dtype=torch.long, device=dev))
+        self.register_buffer("bind_w", torch.zeros(g, self.bind_k, device=dev, dtype=dt))
+        self.rebind()
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def num_nodes(self) -> int:
+        return int(self.node_centers.shape[0])
+
+    # ------------------------------------------------------------------ appearance
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.log_scales)
+
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.opacity_logits)
+
+    def sh(self) -> torch.Tensor:
+        """[G, M, 3] spherical-harmonic coefficients."""
+        return torch.cat([self.sh_dc, self.sh_rest], dim=1)
+
+    def node_radii(self) -> torch.Tensor:
+        return torch.exp(self.node_log_radii)
+
+    # ------------------------------------------------------------------ motion
+    @torch.no_grad()
+    def rebind(self) -> None:
+        """Refresh each Gaussian's K nearest nodes and RBF weights (canonical space)."""
+        idx, w = bind_gaussians(self.means.detach(), self.node_centers, self.node_radii().detach(), self.bind_k)
+        self.bind_idx = idx
+        self.bind_w = w.to(self.means.dtype)
+
+    def node_tangents(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return (catmull_rom_tangents(self.key_times, self.pos_keys),
+                catmull_rom_tangents(self.key_times, self.rot_keys))
+
+    def node_state(self, t: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Node positions ``p_i(t)`` [N, 3] and unit quaternions ``q_i(t)`` [N, 4] at time ``t``."""
+        if self.mlp is not None:
+            dp, q = self.mlp(self.node_centers, t)
+            return self.node_centers + dp, q
+        tt = torch.tensor([float(t)], device=self.key_times.device, dtype=self.key_times.dtype)
+        pos_tan, rot_tan = self.node_tangents()
+        pos = hermite_eval(self.key_times, self.pos_keys, pos_tan, tt)[:, 0]
+        rot = hermite_eval_quat(self.key_times, self.rot_keys, rot_tan, tt)[:, 0]
+        return pos, rot
+
+    def gaussian_transforms(self, t: float, bind_idx=None, bind_w=None) -> torch.Tensor:
+        """Blended unit dual quaternions [G, 8] moving canonical Gaussians to time ``t``."""
+        pos, rot = self.node_state(t)
+        dq_nodes = node_transforms_dq(self.node_centers, pos, rot)
+        return dq_blend(dq_nodes, self.bind_idx if bind_idx is None else bind_idx,
+                        self.bind_w if bind_w is None else bind_w)
+
+    def deform(self, t: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Gaussian centres [G, 3] and rotations [G, 4] at time ``t``."""
+        dq = self.gaussian_transforms(t)
+        return dq_apply_points(dq, self.means), dq_apply_rotations(dq, quat_normalize(self.quats))
+
+    def deform_points(self, points: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, t: float) -> torch.Tensor:
+        """Move arbitrary canonical points [P, 3] bound by (idx, w) [P, K_b] to time ``t``."""
+        pos, rot = self.node_state(t)
+        dq = dq_blend(node_transforms_dq(self.node_centers, pos, rot), idx, w)
+        return dq_apply_points(dq, points)
+
+    # ------------------------------------------------------------------ export
+    @torch.no_grad()
+    def export_splines(self, sample_times: torch.Tensor | None = None):
+        """Node splines as arrays for the bundle.
+
+        For the MLP model (no keys) the motion is sampled at ``sample_times`` and
+        returned as a Catmull-Rom spline through the samples, so Blender still gets
+        F-curves (documented as an approximation of the MLP).
+        """
+        if self.mlp is None:
+            pos_tan, rot_tan = self.node_tangents()
+            return self.key_times, self.pos_keys.detach(), pos_tan, quat_normalize(self.rot_keys.detach()), rot_tan
+        if sample_times is None:
+            sample_times = torch.linspace(0, 1, 16, device=self.node_centers.device)
+        pos, rot = zip(*(self.node_state(float(t)) for t in sample_times))
+        pos = torch.stack(pos, 1)
+        rot = torch.stack(rot, 1)
+        # keep quaternion signs continuous along time (q and -q are the same rotation)
+        sign = torch.sign((rot[:, 1:] * rot[:, :-1]).sum(-1)).cumprod(1)
+        rot = torch.cat([rot[:, :1], rot[:, 1:] * sign.unsqueeze(-1)], 1)
+        return (sample_times, pos, catmull_rom_tangents(sample_times, pos), rot,
+                catmull_rom_tangents(sample_times, rot))

@@ -1,0 +1,40 @@
+"""Rendering a :class:`~engine.train.model.DynamicScene` through :mod:`engine.raster`.
+
+Training, evaluation, the ``render`` command and the demo all render through
+:func:`render_scene`, so they agree on colour (SH), background and backend choice.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .. import raster
+
+
+def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
+                 width: int, height: int, colors: torch.Tensor | None = None, backend: str = "auto",
+                 background: torch.Tensor | None = None):
+    """Render deformed Gaussians of ``model`` from one camera.
+
+    Parameters
+    ----------
+    model : DynamicScene
+        Supplies scales, opacities and SH coefficients (canonical, time-independent).
+    means : (G, 3) deformed centres at the render time.
+    quats : (G, 4) deformed rotations (wxyz).
+    K : (3, 3), w2c : (4, 4) camera.
+    colors : (G, 3), optional
+        Render these colours instead of the model's SH (e.g. a dynamic-score mask).
+    backend : str
+        Rasteriser backend name (``auto`` picks the fastest available).
+
+    Returns
+    -------
+    raster.RenderOutput with ``rgb [H, W, 3]``, ``alpha [H, W, 1]``, ``depth [H, W, 1]``,
+    ``radii [G]`` and ``means2d [G, 2]`` (its ``.grad`` feeds densification).
+    """
+    kwargs = dict(means=means, quats=quats, scales=model.scales(), opacities=model.opacities(), w2c=w2c, K=K,
+                  width=width, height=height, background=background, backend=backend)
+    if colors is not None:
+        return raster.render(colors=colors, **kwargs)
+    return raster.render(sh=model.sh(), sh_degree=model.sh_degree, **kwargs)

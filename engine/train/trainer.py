@@ -1,0 +1,615 @@
+"""The optimisation loop: initialise, train, densify, checkpoint, resume, evaluate.
+
+``Trainer(data, nodes, config, out_dir).run()`` turns :class:`TrainingData` and an
+initial node set into a trained result bundle. Long runs are safe to interrupt:
+checkpoints are written atomically every ``checkpoint_every`` steps and on SIGINT /
+SIGTERM (the CLI turns both into ``KeyboardInterrupt``); ``resume=True`` continues from
+the last checkpoint and reproduces the uninterrupted run (CPU, same seed).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .. import bundle as B
+from ..errors import Cancelled, InputError
+from ..fsutil import atomic_path
+from ..geometry.binding import bind_gaussians
+from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
+from ..geometry.quaternion import quat_conj, quat_normalize, quat_to_matrix
+from ..protocol import Reporter
+from . import losses as L
+from .config import TrainConfig
+from .data import TrainingData
+from .model import DynamicScene
+from .render import render_scene
+
+GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+# ----------------------------------------------------------------------------------
+# Initialisation
+# ----------------------------------------------------------------------------------
+def backproject_pixels(K: torch.Tensor, w2c: torch.Tensor, uv: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+    """Pixels ``uv [P, 2]`` (continuous coords) with z-depth ``[P]`` -> world points ``[P, 3]``."""
+    x = (uv[:, 0] - K[0, 2]) / K[0, 0] * depth
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1] * depth
+    cam = torch.stack([x, y, depth], dim=-1)
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    return (cam - t) @ R  # R^T (cam - t)
+
+
+def project_points(K: torch.Tensor, w2c: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """World points ``[P, 3]`` -> pixels ``[P, 2]`` and z-depth ``[P]`` (no distortion)."""
+    cam = x @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    zc = z.clamp_min(1e-6)
+    u = K[0, 0] * cam[:, 0] / zc + K[0, 2]
+    v = K[1, 1] * cam[:, 1] / zc + K[1, 2]
+    return torch.stack([u, v], -1), z
+
+
+def to_canonical(model_like, points: torch.Tensor, t: float, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Invert the node deformation at time ``t`` for world points observed at ``t``.
+
+    Binds ``points [P, 3]`` to the nodes' positions *at time t*, blends the node
+    transforms and applies the inverse rigid transform. Returns canonical points
+    ``[P, 3]`` and their binding ``(idx, w)``. Exact when the bound nodes move rigidly
+    together; a good initial guess otherwise.
+    """
+    with torch.no_grad():
+        pos, rot = model_like.node_state(t)
+        radii = model_like.node_radii()
+        idx, w = bind_gaussians(points, pos, radii, k)
+        dq = dq_blend(node_transforms_dq(model_like.node_centers, pos, rot), idx, w)
+        qr, qd = dq[:, :4], dq[:, 4:]
+        # inverse of a unit dual quaternion is its quaternion conjugate (both parts)
+        inv = torch.cat([quat_conj(qr), quat_conj(qd)], dim=-1)
+        canon = dq_apply_points(inv, points)
+        idx_c, w_c = bind_gaussians(canon, model_like.node_centers, radii, k)
+    return canon, idx_c, w_c
+
+
+class _NodeMotion(torch.nn.Module):
+    """Node-only view of the motion, used before the Gaussians exist."""
+
+    def __init__(self, model: DynamicScene):
+        super().__init__()
+        self.m = model
+
+    def node_state(self, t):
+        return self.m.node_state(t)
+
+    def node_radii(self):
+        return self.m.node_radii()
+
+    @property
+    def node_centers(self):
+        return self.m.node_centers
+
+
+def initial_gaussians(data: TrainingData, cfg: TrainConfig, gen: torch.Generator):
+    """Back-project pixels of ``cfg.init_keyframes`` training frames (depth + colour).
+
+    Returns world positions ``[G, 3]``, colours ``[G, 3]``, isotropic scales ``[G, 3]``,
+    and the engine time each point was observed at ``[G]``.
+    """
+    if data.depth is None:
+        raise InputError("training needs a depth prior to place the initial Gaussians", None,
+                         "compute priors first (python -m engine prepare) or supply precomputed depth")
+    train = data.train_idx
+    n_key = min(cfg.init_keyframes, len(train))
+    pick = train[torch.linspace(0, len(train) - 1, n_key).round().long()]
+    h, w = data.height, data.width
+    per = cfg.gaussians_per_frame
+    pts, cols, scl, tms = [], [], [], []
+    for f in pick.tolist():  # a handful of keyframes; per-pixel work is vectorised
+        d = data.depth[f]
+        flat = torch.randint(0, h * w, (per,), generator=gen, device="cpu").to(d.device)
+        py, px = flat // w, flat % w
+        z = d[py, px]
+        ok = z > 0
+        py, px, z = py[ok], px[ok], z[ok]
+        uv = torch.stack([px.to(z.dtype) + 0.5, py.to(z.dtype) + 0.5], -1)
+        x = backproject_pixels(data.K[f], data.w2c[f], uv, z)
+        # footprint of ~sqrt(HW / per) pixels at depth z
+        footprint = math.sqrt(h * w / per) * z / data.K[f, 0, 0]
+        pts.append(x)
+        cols.append(data.images[f, py, px])
+        scl.append((0.5 * footprint).unsqueeze(-1).expand(-1, 3))
+        tms.append(torch.full_like(z, float(data.times[f])))
+    return torch.cat(pts), torch.cat(cols), torch.cat(scl), torch.cat(tms)
+
+
+def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: torch.Generator) -> DynamicScene:
+    """Create the model: nodes from ``nodes``, Gaussians back-projected into canonical space."""
+    dev, dt = data.images.device, torch.float32
+    as_t = lambda a: torch.as_tensor(np.asarray(a), device=dev, dtype=dt)  # noqa: E731
+    key_times, pos_keys, rot_keys = as_t(nodes.key_times), as_t(nodes.pos_keys), as_t(nodes.rot_keys)
+    if cfg.motion == "per_frame":
+        # one key per training frame, initialised by sampling the initial spline there
+        from ..geometry.hermite import hermite_eval, hermite_eval_quat
+
+        ft = torch.unique(data.times[data.train_idx]).to(dt)
+        pos_keys = hermite_eval(key_times, pos_keys, as_t(nodes.pos_tangents), ft)
+        rot_keys = hermite_eval_quat(key_times, rot_keys, as_t(nodes.rot_tangents), ft)
+        key_times = ft
+    graph = torch.as_tensor(nodes.graph_idx, device=dev) if nodes.graph_idx is not None else None
+    p_dyn = as_t(nodes.p_dyn) if nodes.p_dyn is not None else None
+    centers = as_t(nodes.centers)
+    # Nodes alone first (one dummy Gaussian) to map observed points to canonical space.
+    probe = DynamicScene(centers[:1].clone(), torch.zeros(1, 3, device=dev), torch.ones(1, 3, device=dev),
+                         torch.full((1,), 0.5, device=dev), centers, as_t(nodes.radii), key_times, pos_keys,
+                         rot_keys, sh_degree=cfg.sh_degree, motion="spline", bind_k=cfg.bind_k,
+                         graph_idx=graph, node_p_dyn=p_dyn, extent=data.extent)
+    pts, cols, scl, tms = initial_gaussians(data, cfg, gen)
+    canon = torch.empty_like(pts)
+    for t in torch.unique(tms).tolist():  # one inversion per keyframe time
+        sel = tms == t
+        if cfg.motion == "mlp":
+            canon[sel] = pts[sel]  # the MLP starts at identity motion
+        else:
+            canon[sel] = to_canonical(_NodeMotion(probe), pts[sel], t, cfg.bind_k)[0]
+    model = DynamicScene(canon, cols.clamp(0, 1), scl, torch.full((len(canon),), 0.3, device=dev), centers,
+                         as_t(nodes.radii), key_times, pos_keys, rot_keys, sh_degree=cfg.sh_degree,
+                         motion=cfg.motion, bind_k=cfg.bind_k, graph_idx=graph, node_p_dyn=p_dyn,
+                         extent=data.extent)
+    return model
+
+
+# ----------------------------------------------------------------------------------
+# Optimiser with per-Gaussian state surgery (densification)
+# ----------------------------------------------------------------------------------
+def make_optimizer(model: DynamicScene, cfg: TrainConfig) -> torch.optim.Adam:
+    e = model.extent
+    groups = [
+        {"name": "means", "params": [model.means], "lr": cfg.lr_means * e},
+        {"name": "quats", "params": [model.quats], "lr": cfg.lr_quats},
+        {"name": "log_scales", "params": [model.log_scales], "lr": cfg.lr_scales},
+        {"name": "opacity_logits", "params": [model.opacity_logits], "lr": cfg.lr_opacity},
+        {"name": "sh_dc", "params": [model.sh_dc], "lr": cfg.lr_sh},
+        {"name": "sh_rest", "params": [model.sh_rest], "lr": cfg.lr_sh / 20},
+        {"name": "node_log_radii", "params": [model.node_log_radii], "lr": 1e-3},
+    ]
+    if model.mlp is not None:
+        groups.append({"name": "mlp", "params": list(model.mlp.parameters()), "lr": cfg.lr_mlp})
+    else:
+        groups.append({"name": "pos_keys", "params": [model.pos_keys], "lr": cfg.lr_node_keys * e})
+        groups.append({"name": "rot_keys", "params": [model.rot_keys], "lr": cfg.lr_node_rot})
+    return torch.optim.Adam(groups, eps=1e-15)
+
+
+def _edit_gaussians(model: DynamicScene, opt: torch.optim.Adam, keep: torch.Tensor | None,
+                    extra: dict[str, torch.Tensor] | None) -> None:
+    """Keep rows ``keep`` of every per-Gaussian parameter and append ``extra`` rows.
+
+    Adam moments follow: kept rows keep theirs, new rows start at zero.
+    """
+    for group in opt.param_groups:
+        name = group["name"]
+        if name not in GAUSSIAN_PARAMS:
+            continue
+        old = group["params"][0]
+        state = opt.state.pop(old, None)
+        data = old.detach()
+        if keep is not None:
+            data = data[keep]
+        if extra is not None:
+            data = torch.cat([data, extra[name].to(data.dtype)], 0)
+        new = torch.nn.Parameter(data.contiguous())
+        if state is not None:
+            for key in ("exp_avg", "exp_avg_sq"):
+                s = state[key]
+                if keep is not None:
+                    s = s[keep]
+                if extra is not None:
+                    s = torch.cat([s, torch.zeros_like(extra[name], dtype=s.dtype)], 0)
+                state[key] = s.contiguous()
+            opt.state[new] = state
+        group["params"][0] = new
+        setattr(model, name, new)
+
+
+# ----------------------------------------------------------------------------------
+# Trainer
+# ----------------------------------------------------------------------------------
+class Trainer:
+    """Runs one reconstruction.
+
+    Parameters
+    ----------
+    data : TrainingData
+    nodes : bundle.NodeArrays
+        Initial node set (from ``engine.nodes``).
+    config : TrainConfig
+    out_dir : path
+        The result bundle folder (checkpoints go to ``out_dir/checkpoints``).
+    reporter : Reporter, optional
+    resume : bool
+        Continue from ``out_dir/checkpoints/checkpoint.pt``.
+    """
+
+    def __init__(self, data: TrainingData, nodes: B.NodeArrays, config: TrainConfig, out_dir,
+                 reporter: Reporter | None = None, resume: bool = False, scene_extra: dict | None = None):
+        self.data = data.validate()
+        self.nodes = nodes
+        self.cfg = config.validate()
+        self.out_dir = Path(out_dir)
+        self.ckpt_path = self.out_dir / "checkpoints" / CHECKPOINT_NAME
+        self.reporter = reporter or Reporter(quiet=True)
+        self.scene_extra = scene_extra or {}
+        self.device = data.images.device
+        torch.manual_seed(self.cfg.seed)
+        if self.device.type == "cpu":
+            # index_put/scatter accumulation is otherwise thread-order dependent; resume
+            # must reproduce an uninterrupted run bit for bit
+            torch.use_deterministic_algorithms(True, warn_only=True)
+        self.gen = torch.Generator(device="cpu")
+        self.gen.manual_seed(self.cfg.seed)
+        self.step = 0
+        self.history: list[dict] = []
+        self.train_seconds = 0.0
+        self.track_canon = None
+        if resume and self.ckpt_path.exists():
+            self._load_checkpoint()
+        else:
+            if resume:
+                self.reporter.log(f"no checkpoint at {self.ckpt_path}; starting a new run", "warning")
+            self.model = build_model(self.data, nodes, self.cfg, self.gen)
+            self.opt = make_optimizer(self.model, self.cfg)
+            self._reset_densify_stats()
+            self._prepare_tracks()
+
+    # ---------------------------------------------------------------- helpers
+    def _reset_densify_stats(self):
+        g = self.model.num_gaussians
+        self.grad_accum = torch.zeros(g, device=self.device)
+        self.grad_count = torch.zeros(g, device=self.device)
+        self.max_radii = torch.zeros(g, device=self.device)
+
+    def _prepare_tracks(self):
+        """Lift each track once (first visible frame + depth) and map it to canonical space."""
+        d = self.data
+        if d.tracks_xy is None or d.depth is None or self.cfg.loss.track == 0 or self.model.mlp is not None:
+            return
+        vis = d.tracks_vis.clone()
+        vis[:, d.val_idx] = False  # never supervise with held-out frames
+        has = vis.any(1)
+        if has.sum() == 0:
+            return
+        first = torch.argmax(vis.to(torch.int8), dim=1)
+        pid = torch.nonzero(has).squeeze(1)
+        f0 = first[pid]
+        uv = d.tracks_xy[pid, f0]
+        h, w = d.height, d.width
+        px = uv[:, 0].long().clamp(0, w - 1)
+        py = uv[:, 1].long().clamp(0, h - 1)
+        z = d.depth[f0, py, px]
+        ok = z > 0
+        pid, f0, uv, z = pid[ok], f0[ok], uv[ok], z[ok]
+        canon = torch.empty(len(pid), 3, device=self.device)
+        idx = torch.empty(len(pid), self.model.bind_k, dtype=torch.long, device=self.device)
+        wts = torch.empty(len(pid), self.model.bind_k, device=self.device)
+        for f in torch.unique(f0).tolist():
+            sel = f0 == f
+            x = backproject_pixels(d.K[f], d.w2c[f], uv[sel], z[sel])
+            canon[sel], idx[sel], wts[sel] = to_canonical(self.model, x, float(d.times[f]), self.model.bind_k)
+        self.track_ids, self.track_canon, self.track_idx, self.track_w = pid, canon, idx, wts
+        self.track_vis = vis
+
+    def _lr_schedule(self):
+        if self.cfg.steps <= 1:
+            return
+        frac = min(self.step / self.cfg.steps, 1.0)
+        e = self.model.extent
+        lr = math.exp((1 - frac) * math.log(self.cfg.lr_means * e) + frac * math.log(self.cfg.lr_means_final * e))
+        for group in self.opt.param_groups:
+            if group["name"] == "means":
+                group["lr"] = lr
+
+    # ---------------------------------------------------------------- one step
+    def _loss(self, f: int) -> tuple[torch.Tensor, dict]:
+        d, m, w = self.data, self.model, self.cfg.loss
+        t = float(d.times[f])
+        means_t, quats_t = m.deform(t)
+        out = render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, backend=self.cfg.backend)
+        target = d.images[f]
+        terms = {"rgb": L.photometric(out.rgb, target, w.ssim) * w.rgb}
+        if w.depth > 0 and d.depth is not None:
+            prior = d.depth[f]
+            valid = (prior > 0) & (out.alpha[..., 0].detach() > 0.5)
+            # the rasteriser accumulates sum(w_i z_i); divide by alpha for the expected depth
+            depth = out.depth[..., 0] / out.alpha[..., 0].detach().clamp_min(1e-6)
+            terms["depth"] = w.depth * L.depth_shift_scale_invariant(depth, prior, valid)
+        if w.mask > 0 and d.fg is not None and self.step % 4 == 0:
+            dyn = (m.node_p_dyn[m.bind_idx] * m.bind_w).sum(-1, keepdim=True).expand(-1, 3)
+            dyn_out = render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, colors=dyn,
+                                   backend=self.cfg.backend)
+            terms["mask"] = w.mask * L.mask_loss(out.alpha, dyn_out.rgb[..., :1], d.fg[f])
+        if self.track_canon is not None and w.track > 0 and self.step >= self.cfg.warmup_static_steps:
+            vis = self.track_vis[self.track_ids, f]
+            if vis.any():
+                sel = torch.nonzero(vis).squeeze(1)
+                if len(sel) > 1024:
+                    sel = sel[torch.randperm(len(sel), generator=self.gen)[:1024].to(sel.device)]
+                x = m.deform_points(self.track_canon[sel], self.track_idx[sel], self.track_w[sel], t)
+                uv, _ = project_points(d.K[f], d.w2c[f], x)
+                target_uv = d.tracks_xy[self.track_ids[sel], f]
+                terms["track"] = w.track * L.track_loss(uv, target_uv, torch.ones_like(sel, dtype=torch.bool),
+                                                        float(d.width))
+        if w.arap > 0 and m.graph_idx.shape[1] > 0 and self.step >= self.cfg.warmup_static_steps:
+            t1 = float(torch.rand((), generator=self.gen))
+            p0, q0 = m.node_state(t)
+            p1, q1 = m.node_state(t1)
+            rel = quat_to_matrix(quat_normalize(q1)) @ quat_to_matrix(quat_normalize(q0)).transpose(-1, -2)
+            terms["arap"] = w.arap * L.arap_loss(p0, p1, rel, m.graph_idx) / (m.extent ** 2)
+        if m.pos_keys is not None and (w.velocity > 0 or w.acceleration > 0) and self.cfg.motion == "spline":
+            vel, acc = L.spline_smoothness(m.pos_keys / m.extent, m.key_times)
+            terms["velocity"] = w.velocity * vel
+            terms["acceleration"] = w.acceleration * acc
+        loss = sum(terms.values())
+        with torch.no_grad():
+            metrics = {k: float(v) for k, v in terms.items()}
+            metrics["psnr"] = float(L.psnr(out.rgb.clamp(0, 1), target))
+        return loss, metrics, out
+
+    def _densify(self):
+        cfg, m = self.cfg, self.model
+        with torch.no_grad():
+            grads = self.grad_accum / self.grad_count.clamp_min(1)
+            scales = m.scales().max(dim=1).values
+            big = scales > cfg.percent_dense * m.extent
+            hot = grads >= cfg.densify_grad_threshold
+            room = max(cfg.max_gaussians - m.num_gaussians, 0)
+            clone = torch.nonzero(hot & ~big).squeeze(1)
+            split = torch.nonzero(hot & big).squeeze(1)
+            # respect the budget: keep the hottest candidates
+            if len(clone) + len(split) > room:
+                cand = torch.cat([clone, split])
+                order = torch.argsort(grads[cand], descending=True)[:room]
+                chosen = cand[order]
+                clone = chosen[~big[chosen]]
+                split = chosen[big[chosen]]
+            extra = {}
+            if len(clone) or len(split):
+                src = torch.cat([clone, split])
+                std = m.scales()[split]
+                noise = torch.randn(std.shape, generator=self.gen).to(std) * std
+                rot = quat_to_matrix(quat_normalize(m.quats[split]))
+                offset = torch.zeros(len(src), 3, device=self.device)
+                offset[len(clone):] = (rot @ noise.unsqueeze(-1)).squeeze(-1)
+                extra = {name: getattr(m, name).detach()[src].clone() for name in GAUSSIAN_PARAMS}
+                extra["means"] = extra["means"] + offset
+                extra["log_scales"][len(clone):] -= math.log(1.6)
+                # the split originals shrink too
+                m.log_scales.data[split] -= math.log(1.6)
+            keep = m.opacities() > cfg.opacity_prune
+            _edit_gaussians(m, self.opt, keep, extra or None)
+            m.rebind()
+            self._reset_densify_stats()
+
+    def _reset_opacity(self):
+        with torch.no_grad():
+            self.model.opacity_logits.data.clamp_(max=math.log(0.01 / 0.99))
+        for group in self.opt.param_groups:
+            if group["name"] == "opacity_logits":
+                st = self.opt.state.get(group["params"][0])
+                if st:
+                    st["exp_avg"].zero_()
+                    st["exp_avg_sq"].zero_()
+
+    # ---------------------------------------------------------------- checkpoints
+    def _checkpoint_state(self) -> dict:
+        return {
+            "step": self.step,
+            "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
+            "optimizer": self.opt.state_dict(),
+            "gen": self._gen_state if getattr(self, "_gen_state", None) is not None else self.gen.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "grad_accum": self.grad_accum.cpu(), "grad_count": self.grad_count.cpu(),
+            "max_radii": self.max_radii.cpu(),
+            "history": [[h["step"], h["loss"], h["psnr"]] for h in self.history],
+            "train_seconds": self.train_seconds,
+            # lifted track anchors are computed once from the initial model; a resumed
+            # run must reuse them to reproduce the uninterrupted run
+            "tracks": None if self.track_canon is None else {
+                "ids": self.track_ids.cpu(), "canon": self.track_canon.cpu(), "idx": self.track_idx.cpu(),
+                "w": self.track_w.cpu(), "vis": self.track_vis.cpu()},
+        }
+
+    def save_checkpoint(self) -> Path:
+        with atomic_path(self.ckpt_path) as tmp:
+            torch.save(self._checkpoint_state(), tmp)
+        return self.ckpt_path
+
+    def _load_checkpoint(self):
+        try:
+            state = torch.load(self.ckpt_path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # corrupt / foreign file
+            raise InputError(f"cannot load checkpoint ({exc})", self.ckpt_path,
+                             "delete the checkpoints folder to start over, or pass a different --out") from None
+        sd = state["model"]
+        dev = self.device
+        g = sd["means"].shape[0]
+        gen = torch.Generator()
+        gen.manual_seed(0)
+        # Rebuild the model with the checkpoint's shapes, then load exact values.
+        nodes_keys = sd.get("pos_keys")
+        model = DynamicScene(sd["means"].to(dev), torch.zeros(g, 3, device=dev), torch.ones(g, 3, device=dev),
+                             torch.full((g,), 0.5, device=dev), sd["node_centers"].to(dev),
+                             torch.exp(sd["node_log_radii"]).to(dev), sd["key_times"].to(dev),
+                             (nodes_keys if nodes_keys is not None else
+                              sd["node_centers"][:, None].expand(-1, len(sd["key_times"]), 3)).to(dev),
+                             sd.get("rot_keys", None).to(dev) if sd.get("rot_keys") is not None else None,
+                             sh_degree=self.cfg.sh_degree, motion=self.cfg.motion, bind_k=self.cfg.bind_k,
+                             graph_idx=sd["graph_idx"].to(dev), node_p_dyn=sd["node_p_dyn"].to(dev),
+                             extent=self.data.extent)
+        model.load_state_dict({k: v.to(dev) for k, v in sd.items()})
+        self.model = model
+        self.opt = make_optimizer(model, self.cfg)
+        self.opt.load_state_dict(state["optimizer"])
+        self.gen.set_state(state["gen"])
+        torch.set_rng_state(state["torch_rng"])
+        self.step = int(state["step"])
+        self.grad_accum = state["grad_accum"].to(dev)
+        self.grad_count = state["grad_count"].to(dev)
+        self.max_radii = state["max_radii"].to(dev)
+        self.history = [{"step": int(s), "loss": float(lo), "psnr": float(p)} for s, lo, p in state["history"]]
+        self.train_seconds = float(state.get("train_seconds", 0.0))
+        tracks = state.get("tracks")
+        if tracks is not None:
+            self.track_ids, self.track_canon = tracks["ids"].to(dev), tracks["canon"].to(dev)
+            self.track_idx, self.track_w, self.track_vis = tracks["idx"].to(dev), tracks["w"].to(dev), tracks["vis"].to(dev)
+        self.reporter.log(f"resumed from step {self.step} ({self.ckpt_path})")
+
+    # ---------------------------------------------------------------- main loop
+    def train(self) -> None:
+        cfg, d = self.cfg, self.data
+        train_idx = d.train_idx.cpu()
+        motion_groups = {"pos_keys", "rot_keys", "mlp"}
+        t_start = time.perf_counter()
+        self._stop_requested = False
+        previous = self._install_stop_handlers()
+        try:
+            while self.step < cfg.steps:
+                if self._stop_requested:  # SIGINT/SIGTERM: stop at a step boundary
+                    raise KeyboardInterrupt
+                self._gen_state = self.gen.get_state()
+                f = int(train_idx[torch.randint(0, len(train_idx), (1,), generator=self.gen)])
+                self._lr_schedule()
+                loss, metrics, out = self._loss(f)
+                self.opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if self.step < cfg.warmup_static_steps:  # static warm-up: motion frozen
+                    for group in self.opt.param_groups:
+                        if group["name"] in motion_groups:
+                            for p in group["params"]:
+                                p.grad = None
+                self.opt.step()
+                with torch.no_grad():
+                    if out.means2d.grad is not None and cfg.densify_from <= self.step < cfg.densify_until:
+                        vis = out.radii > 0
+                        gn = out.means2d.grad[:, :2].norm(dim=-1)
+                        # gradient in NDC-like units: scale pixel gradients by half the image size
+                        gn = gn * 0.5 * max(d.width, d.height)
+                        self.grad_accum[vis] += gn[vis]
+                        self.grad_count[vis] += 1
+                        self.max_radii[vis] = torch.maximum(self.max_radii[vis], out.radii[vis].to(self.max_radii))
+                self.step += 1
+                if cfg.densify_from <= self.step < cfg.densify_until and self.step % cfg.densify_every == 0:
+                    self._densify()
+                elif cfg.rebind_every and self.step % cfg.rebind_every == 0:
+                    self.model.rebind()
+                if cfg.opacity_reset_every and self.step % cfg.opacity_reset_every == 0 and self.step < cfg.densify_until:
+                    self._reset_opacity()
+                if self.step % cfg.log_every == 0 or self.step == cfg.steps:
+                    total = sum(v for k, v in metrics.items() if k != "psnr")
+                    self.history.append({"step": self.step, "loss": total, "psnr": metrics["psnr"]})
+                    self.reporter.progress("train", self.step, cfg.steps, loss=total, psnr=metrics["psnr"],
+                                           gaussians=self.model.num_gaussians)
+                if cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0 and self.step < cfg.steps:
+                    self.train_seconds += time.perf_counter() - t_start
+                    t_start = time.perf_counter()
+                    self.save_checkpoint()
+                self._gen_state = None
+        except KeyboardInterrupt:
+            # A KeyboardInterrupt raised mid-step (no handler installed, e.g. off the
+            # main thread) loses that step's work; the sampler state is rewound to the
+            # step's start so a resume replays it exactly.
+            self.train_seconds += time.perf_counter() - t_start
+            path = self.save_checkpoint()
+            raise Cancelled(f"training stopped at step {self.step}; checkpoint saved to {path}") from None
+        finally:
+            self._restore_stop_handlers(previous)
+        self.train_seconds += time.perf_counter() - t_start
+
+    def request_stop(self) -> None:
+        """Ask the loop to checkpoint and stop after the current step (thread-safe)."""
+        self._stop_requested = True
+
+    def _install_stop_handlers(self):
+        import signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return None
+        handler = lambda signum, frame: self.request_stop()  # noqa: E731
+        return {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    @staticmethod
+    def _restore_stop_handlers(previous):
+        import signal
+
+        for sig, old in (previous or {}).items():
+            signal.signal(sig, old)
+
+    # ---------------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def render_frame(self, f: int, t: float | None = None):
+        d, m = self.data, self.model
+        t = float(d.times[f]) if t is None else t
+        means_t, quats_t = m.deform(t)
+        return render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, backend=self.cfg.backend)
+
+    @torch.no_grad()
+    def evaluate(self, idx: torch.Tensor | None = None) -> dict:
+        """PSNR / SSIM (and masked PSNR where a fg prior exists) on frames ``idx`` (default: val)."""
+        d = self.data
+        idx = d.val_idx if idx is None else idx
+        if len(idx) == 0:
+            return {"frames": 0}
+        ps, ss, mps = [], [], []
+        for f in idx.tolist():
+            out = self.render_frame(f)
+            pred = out.rgb.clamp(0, 1)
+            ps.append(float(L.psnr(pred, d.images[f])))
+            ss.append(float(L.ssim(pred, d.images[f])))
+            if d.fg is not None and float(d.fg[f].sum()) > 16:
+                mps.append(float(L.psnr(pred, d.images[f], (d.fg[f] > 0.5).to(pred.dtype).unsqueeze(-1))))
+        res = {"frames": len(ps), "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
+        if mps:
+            res["masked_psnr"] = float(np.mean(mps))
+        return res
+
+    # ---------------------------------------------------------------- export
+    def export_bundle(self, metrics: dict | None = None) -> Path:
+        m, d = self.model, self.data
+        key_times, pos_keys, pos_tan, rot_keys, rot_tan = m.export_splines()
+        nodes = B.NodeArrays(
+            centers=m.node_centers.cpu().numpy(), radii=m.node_radii().detach().cpu().numpy(),
+            key_times=key_times.cpu().numpy(), pos_keys=pos_keys.cpu().numpy(), pos_tangents=pos_tan.cpu().numpy(),
+            rot_keys=rot_keys.cpu().numpy(), rot_tangents=rot_tan.cpu().numpy(),
+            p_dyn=m.node_p_dyn.cpu().numpy(), bind_idx=m.bind_idx.cpu().numpy(), bind_w=m.bind_w.cpu().numpy(),
+            graph_idx=m.graph_idx.cpu().numpy() if m.graph_idx.shape[1] else None)
+        gaussians = B.GaussianArrays(means=m.means.detach().cpu().numpy(),
+                                     quats=quat_normalize(m.quats.detach()).cpu().numpy(),
+                                     log_scales=m.log_scales.detach().cpu().numpy(),
+                                     opacity_logits=m.opacity_logits.detach().cpu().numpy(),
+                                     sh=m.sh().detach().cpu().numpy())
+        frames = d.frame_numbers if d.frame_numbers is not None else torch.arange(d.num_frames)
+        cams = [{"frame": int(frames[i]), "w2c": d.w2c[i].cpu().numpy(), "K": d.K[i].cpu().numpy(),
+                 "width": d.width, "height": d.height, "time": float(d.times[i]),
+                 "split": "val" if i in set(d.val_idx.tolist()) else "train"} for i in range(d.num_frames)]
+        scene = B.new_scene(int(frames.min()), int(frames.max()), d.fps, cams, config=self.cfg.to_dict(),
+                            stats={"steps": self.step, "gaussians": m.num_gaussians, "nodes": m.num_nodes,
+                                   "train_seconds": round(self.train_seconds, 2),
+                                   "history": self.history, **(metrics or {})},
+                            extent=d.extent, **self.scene_extra)
+        return B.save_bundle(self.out_dir, scene, nodes, gaussians)
+
+    def run(self) -> dict:
+        """Train, evaluate on held-out frames, write the bundle; return a summary."""
+        self.reporter.log(f"training {self.model.num_gaussians} Gaussians, {self.model.num_nodes} nodes, "
+                          f"{self.cfg.steps} steps ({self.cfg.preset})")
+        self.train()
+        metrics = {"eval": self.evaluate()}
+        metrics["iterations_per_s"] = round(self.step / max(self.train_seconds, 1e-9), 3)
+        path = self.export_bundle(metrics)
+        return {"bundle": str(path), "steps": self.step, "gaussians": self.model.num_gaussians,
+                "nodes": self.model.num_nodes, **metrics}
