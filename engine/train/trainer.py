@@ -493,14 +493,15 @@ class Trainer:
                                 p.grad = None
                 self.opt.step()
                 with torch.no_grad():
-                    if out.means2d.grad is not None and cfg.densify_from <= self.step < cfg.densify_until:
-                        vis = out.radii > 0
-                        gn = out.means2d.grad[:, :2].norm(dim=-1)
+                    grad2d = out.grad2d()
+                    if grad2d is not None and cfg.densify_from <= self.step < cfg.densify_until:
+                        vis = out.radii.reshape(-1) > 0
+                        gn = grad2d.norm(dim=-1)
                         # gradient in NDC-like units: scale pixel gradients by half the image size
                         gn = gn * 0.5 * max(d.width, d.height)
                         self.grad_accum[vis] += gn[vis]
                         self.grad_count[vis] += 1
-                        self.max_radii[vis] = torch.maximum(self.max_radii[vis], out.radii[vis].to(self.max_radii))
+                        self.max_radii[vis] = torch.maximum(self.max_radii[vis], out.radii.reshape(-1)[vis].to(self.max_radii))
                 self.step += 1
                 if cfg.densify_from <= self.step < cfg.densify_until and self.step % cfg.densify_every == 0:
                     self._densify()

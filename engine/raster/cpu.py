@@ -1,0 +1,138 @@
+"""``cpu`` backend: torch.autograd.Functions around the Numba kernels in :mod:`.cpu_numba`.
+
+Two Functions, like gsplat: :class:`ProjectCPU` (3D -> 2D) and :class:`RasterizeCPU`
+(2D -> image). ``means2d`` is a real intermediate tensor, so training can call
+``means2d.retain_grad()`` and read the 2D-mean gradient for densification.
+
+Threads: Numba runs with ``torch.get_num_threads()`` threads and torch is set to one thread
+while a kernel runs, because torch's OpenMP pool and Numba's pool stall each other when
+both are busy (measured on the 2-core machine).
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import torch
+
+from . import cpu_numba as K_
+from .cpu_numba import TILE
+from .reference import EPS2D
+
+
+@contextlib.contextmanager
+def kernel_threads():
+    """Run Numba with torch's thread count while torch itself uses one thread."""
+    import numba
+
+    n = torch.get_num_threads()
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().to(device="cpu", dtype=torch.float32).contiguous().numpy()
+
+
+def _intr(K) -> np.ndarray:
+    K = K.detach().cpu().double()
+    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float32)
+
+
+class ProjectCPU(torch.autograd.Function):
+    """(means, quats, scales, opacities) -> (means2d, conics, depths, radii, extents)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, w2c, K, width, height, near, far):
+        n = means.shape[0]
+        m, q, s, o = _np(means), _np(quats), _np(scales), _np(opacities)
+        view, intr = _np(w2c), _intr(K)
+        means2d = np.zeros((n, 2), np.float32)
+        conics = np.zeros((n, 3), np.float32)
+        depths = np.zeros(n, np.float32)
+        radii = np.zeros(n, np.int32)
+        extents = np.zeros((n, 2), np.float32)
+        with kernel_threads():
+            K_.project_forward(m, q, s, o, view, intr, int(width), int(height), np.float32(near),
+                               np.float32(far), np.float32(EPS2D), means2d, conics, depths, radii, extents)
+        ctx.save_for_backward(means, quats, scales)
+        ctx.view, ctx.intr, ctx.size, ctx.radii = view, intr, (int(width), int(height)), radii
+        r, e = torch.from_numpy(radii), torch.from_numpy(extents)
+        ctx.mark_non_differentiable(r, e)
+        return torch.from_numpy(means2d), torch.from_numpy(conics), torch.from_numpy(depths), r, e
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, v_depths, _r, _e):
+        means, quats, scales = ctx.saved_tensors
+        n = means.shape[0]
+        z = lambda t, shape: np.zeros(shape, np.float32) if t is None else _np(t)  # noqa: E731
+        v_m = np.empty((n, 3), np.float32)
+        v_q = np.empty((n, 4), np.float32)
+        v_s = np.empty((n, 3), np.float32)
+        with kernel_threads():
+            K_.project_backward(_np(means), _np(quats), _np(scales), ctx.view, ctx.intr, ctx.size[0], ctx.size[1],
+                                np.float32(EPS2D), ctx.radii, z(v_means2d, (n, 2)), z(v_conics, (n, 3)),
+                                z(v_depths, (n,)), v_m, v_q, v_s)
+        cast = lambda a, like: torch.from_numpy(a).to(like.dtype)  # noqa: E731
+        return cast(v_m, means), cast(v_q, quats), cast(v_s, scales), None, None, None, None, None, None, None
+
+
+class RasterizeCPU(torch.autograd.Function):
+    """(means2d, conics, depths, colors, opacities) -> (rgb [H,W,3], alpha [H,W,1], depth [H,W,1])."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, depths, colors, opacities, radii, extents, width, height, background):
+        W, H = int(width), int(height)
+        tx, ty = (W + TILE - 1) // TILE, (H + TILE - 1) // TILE
+        n = means2d.shape[0]
+        m2, cn, dz = _np(means2d), _np(conics), _np(depths)
+        col, op = _np(colors), _np(opacities)
+        bg = np.zeros(3, np.float32) if background is None else _np(background)
+        rgb = np.empty((H, W, 3), np.float32)
+        dep = np.empty((H, W), np.float32)
+        T = np.empty((H, W), np.float32)
+        last = np.empty((H, W), np.int32)
+        with kernel_threads():
+            offsets, gid, box = K_.bin_tiles(dz, m2, _np(extents), radii.numpy(), W, H, tx, ty)
+            log_op = np.log(np.maximum(np.float32(255.0) * op, np.float32(1.0)))
+            data, ibox = K_.gather_instances(gid, m2, cn, dz, col, op, log_op, box)
+            K_.raster_forward(offsets, data, ibox, W, H, tx, bg, rgb, dep, T, last)
+        ctx.state = (offsets, gid, data, ibox, bg, T, last, W, H, tx, n)
+        ctx.dtypes = (means2d.dtype, conics.dtype, depths.dtype, colors.dtype, opacities.dtype)
+        ctx.has_bg = background is not None
+        ctx.bg_dtype = None if background is None else background.dtype
+        alpha = torch.from_numpy(1.0 - T)[..., None]
+        ctx.n_instances = int(gid.shape[0])
+        return torch.from_numpy(rgb), alpha, torch.from_numpy(dep)[..., None]
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_alpha, g_depth):
+        offsets, gid, data, ibox, bg, T, last, W, H, tx, n = ctx.state
+        gr = np.zeros((H, W, 3), np.float32) if g_rgb is None else _np(g_rgb)
+        ga = np.zeros((H, W), np.float32) if g_alpha is None else _np(g_alpha[..., 0])
+        gd = np.zeros((H, W), np.float32) if g_depth is None else _np(g_depth[..., 0])
+        with kernel_threads():
+            inst = K_.raster_backward(offsets, data, ibox, W, H, tx, bg, T, last, gr, ga, gd)
+            per = K_.scatter_instances(gid, inst, n)
+        per = torch.from_numpy(per)
+        d = ctx.dtypes
+        v_bg = None
+        if ctx.has_bg and ctx.needs_input_grad[9]:
+            v_bg = (torch.from_numpy(gr) * torch.from_numpy(T)[..., None]).sum((0, 1)).to(ctx.bg_dtype)
+        return (per[:, 0:2].to(d[0]), per[:, 2:5].to(d[1]), per[:, 9].to(d[2]), per[:, 6:9].to(d[3]),
+                per[:, 5].to(d[4]), None, None, None, None, v_bg)
+
+
+def project(means, quats, scales, opacities, w2c, K, width, height, near=0.01, far=1e4):
+    """Same contract as :func:`engine.raster.reference.project` (CPU tensors, float32 math)."""
+    return ProjectCPU.apply(means, quats, scales, opacities, w2c, K, width, height, near, far)
+
+
+def rasterize(means2d, conics, depths, colors, opacities, radii, extents, width, height, background=None):
+    """Tile compositing; returns ``rgb [H,W,3], alpha [H,W,1], depth [H,W,1]``."""
+    return RasterizeCPU.apply(means2d, conics, depths, colors, opacities, radii, extents, width, height, background)

@@ -1,0 +1,718 @@
+"""Numba CPU kernels: projection, tile binning, compositing, and their hand-derived backward.
+
+All arithmetic is float32 (every literal is a module-level ``np.float32`` constant: a bare
+Python float literal would silently promote the expression to float64 in Numba and stop
+LLVM from vectorising). Kernels are compiled with ``cache=True`` and
+``error_model='numpy'`` (no ZeroDivisionError checks in the inner loops).
+
+Pipeline (forward)::
+
+    project_forward   prange over Gaussians: EWA projection, conic, radii, alpha>=1/255 box
+    bin_tiles         serial: global stable depth sort, then per-tile instance lists in
+                      depth order (so every tile list is already sorted)
+    gather_instances  prange: copy per-instance data into tile order (flat arrays)
+    raster_forward    prange over tiles: front-to-back compositing with early stop
+
+Backward mirrors it: ``raster_backward`` walks each tile's list in reverse (as in 3DGS),
+recovering the transmittance by division, writes per-instance gradients, which
+``scatter_instances`` sums per Gaussian; ``project_backward`` chains them to the 3D
+parameters. Semantics are those of :mod:`engine.raster.reference`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+F0 = np.float32(0.0)
+F1 = np.float32(1.0)
+F2 = np.float32(2.0)
+F3 = np.float32(3.0)
+F4 = np.float32(4.0)
+HALF = np.float32(0.5)
+ALPHA_MIN = np.float32(1.0 / 255.0)
+ALPHA_MAX = np.float32(0.99)
+T_MIN = np.float32(1e-4)
+F255 = np.float32(255.0)
+BOX_SCALE = np.float32(1.0001)
+BOX_PAD = np.float32(0.01)
+TENTH = np.float32(0.1)
+FOV_PAD = np.float32(0.3)
+TILE = 16
+CHUNK = 256  # Gaussians per parallel task in the projection backward
+
+_JIT = dict(cache=True, error_model="numpy", nogil=True)
+
+
+@njit(inline="always", **_JIT)
+def _quat_rot(qw, qx, qy, qz):
+    inv = F1 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    w, x, y, z = qw * inv, qx * inv, qy * inv, qz * inv
+    r00 = F1 - F2 * (y * y + z * z)
+    r01 = F2 * (x * y - w * z)
+    r02 = F2 * (x * z + w * y)
+    r10 = F2 * (x * y + w * z)
+    r11 = F1 - F2 * (x * x + z * z)
+    r12 = F2 * (y * z - w * x)
+    r20 = F2 * (x * z - w * y)
+    r21 = F2 * (y * z + w * x)
+    r22 = F1 - F2 * (x * x + y * y)
+    return w, x, y, z, inv, r00, r01, r02, r10, r11, r12, r20, r21, r22
+
+
+@njit(inline="always", **_JIT)
+def _mm(A, B, out):
+    """Small dense matrix product into ``out`` (no BLAS inside Numba, no allocation)."""
+    for r in range(A.shape[0]):
+        for q in range(B.shape[1]):
+            acc = F0
+            for j in range(A.shape[1]):
+                acc += A[r, j] * B[j, q]
+            out[r, q] = acc
+    return out
+
+
+@njit(parallel=True, **_JIT)
+def project_forward(means, quats, scales, opac, view, intr, width, height, near, far, eps2d,
+                    means2d, conics, depths, radii, extents):
+    """EWA projection. Inputs float32: means [N,3], quats [N,4], scales [N,3], opac [N],
+    view [4,4], intr [4] = (fx, fy, cx, cy). Outputs (preallocated): means2d [N,2],
+    conics [N,3], depths [N], radii [N] int32, extents [N,2]."""
+    n = means.shape[0]
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    W = np.float32(width)
+    H = np.float32(height)
+    tan_x = HALF * W / fx
+    tan_y = HALF * H / fy
+    lxp = (W - cx) / fx + FOV_PAD * tan_x
+    lxn = cx / fx + FOV_PAD * tan_x
+    lyp = (H - cy) / fy + FOV_PAD * tan_y
+    lyn = cy / fy + FOV_PAD * tan_y
+    for i in prange(n):
+        radii[i] = 0
+        extents[i, 0] = F0
+        extents[i, 1] = F0
+        mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
+        px = view[0, 0] * mx + view[0, 1] * my + view[0, 2] * mz + view[0, 3]
+        py = view[1, 0] * mx + view[1, 1] * my + view[1, 2] * mz + view[1, 3]
+        pz = view[2, 0] * mx + view[2, 1] * my + view[2, 2] * mz + view[2, 3]
+        depths[i] = pz
+        if not (pz > near and pz < far):
+            continue
+        iz = F1 / pz
+        u = fx * px * iz + cx
+        v = fy * py * iz + cy
+        means2d[i, 0] = u
+        means2d[i, 1] = v
+        _, _, _, _, _, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_rot(
+            quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
+        s0, s1, s2 = scales[i, 0], scales[i, 1], scales[i, 2]
+        # M = Rq S ; cov3 = M M^T
+        m00, m01, m02 = r00 * s0, r01 * s1, r02 * s2
+        m10, m11, m12 = r10 * s0, r11 * s1, r12 * s2
+        m20, m21, m22 = r20 * s0, r21 * s1, r22 * s2
+        c00 = m00 * m00 + m01 * m01 + m02 * m02
+        c01 = m00 * m10 + m01 * m11 + m02 * m12
+        c02 = m00 * m20 + m01 * m21 + m02 * m22
+        c11 = m10 * m10 + m11 * m11 + m12 * m12
+        c12 = m10 * m20 + m11 * m21 + m12 * m22
+        c22 = m20 * m20 + m21 * m21 + m22 * m22
+        # camera-frame cov: Wc = R cov3 R^T ; then JW = J Wc (J rows: (j00,0,j02), (0,j11,j12))
+        tx = pz * min(lxp, max(-lxn, px * iz))
+        ty = pz * min(lyp, max(-lyn, py * iz))
+        j00 = fx * iz
+        j02 = -fx * tx * iz * iz
+        j11 = fy * iz
+        j12 = -fy * ty * iz * iz
+        # RC = R cov3 (3x3), Wc = RC R^T
+        a0 = view[0, 0] * c00 + view[0, 1] * c01 + view[0, 2] * c02
+        a1 = view[0, 0] * c01 + view[0, 1] * c11 + view[0, 2] * c12
+        a2 = view[0, 0] * c02 + view[0, 1] * c12 + view[0, 2] * c22
+        b0 = view[1, 0] * c00 + view[1, 1] * c01 + view[1, 2] * c02
+        b1 = view[1, 0] * c01 + view[1, 1] * c11 + view[1, 2] * c12
+        b2 = view[1, 0] * c02 + view[1, 1] * c12 + view[1, 2] * c22
+        d0 = view[2, 0] * c00 + view[2, 1] * c01 + view[2, 2] * c02
+        d1 = view[2, 0] * c01 + view[2, 1] * c11 + view[2, 2] * c12
+        d2 = view[2, 0] * c02 + view[2, 1] * c12 + view[2, 2] * c22
+        w00 = a0 * view[0, 0] + a1 * view[0, 1] + a2 * view[0, 2]
+        w01 = a0 * view[1, 0] + a1 * view[1, 1] + a2 * view[1, 2]
+        w02 = a0 * view[2, 0] + a1 * view[2, 1] + a2 * view[2, 2]
+        w11 = b0 * view[1, 0] + b1 * view[1, 1] + b2 * view[1, 2]
+        w12 = b0 * view[2, 0] + b1 * view[2, 1] + b2 * view[2, 2]
+        w22 = d0 * view[2, 0] + d1 * view[2, 1] + d2 * view[2, 2]
+        # cov2 = J Wc J^T
+        q00 = j00 * w00 + j02 * w02
+        q01 = j00 * w01 + j02 * w12
+        q02 = j00 * w02 + j02 * w22
+        q11 = j11 * w11 + j12 * w12
+        q12 = j11 * w12 + j12 * w22
+        ca = q00 * j00 + q02 * j02 + eps2d
+        cb = q01 * j11 + q02 * j12
+        cc = q11 * j11 + q12 * j12 + eps2d
+        det = ca * cc - cb * cb
+        if not det > F0:
+            continue
+        idet = F1 / det
+        conics[i, 0] = cc * idet
+        conics[i, 1] = -cb * idet
+        conics[i, 2] = ca * idet
+        o = opac[i]
+        if not o >= ALPHA_MIN:
+            continue
+        thr = math.log(max(F255 * o, F1))
+        ex = math.sqrt(F2 * thr * ca) * BOX_SCALE + BOX_PAD
+        ey = math.sqrt(F2 * thr * cc) * BOX_SCALE + BOX_PAD
+        if u + ex <= F0 or u - ex >= W or v + ey <= F0 or v - ey >= H:
+            continue
+        mid = HALF * (ca + cc)
+        lam = mid + math.sqrt(max(mid * mid - det, TENTH))
+        radii[i] = np.int32(math.ceil(F3 * math.sqrt(lam)))
+        extents[i, 0] = ex
+        extents[i, 1] = ey
+
+
+@njit(parallel=True, **_JIT)
+def _boxes(means2d, extents, radii, width, height, box, ntile):
+    """Pixel box (x0, x1, y0, y1; end exclusive, clipped) and tile count per Gaussian."""
+    for g in prange(means2d.shape[0]):
+        ntile[g] = 0
+        box[g, 0] = box[g, 1] = box[g, 2] = box[g, 3] = 0
+        if radii[g] <= 0:
+            continue
+        u, v = means2d[g, 0], means2d[g, 1]
+        ex, ey = extents[g, 0], extents[g, 1]
+        # pixel x whose centre x + 0.5 lies in [u - ex, u + ex]
+        x0 = max(0, int(math.ceil(u - ex - HALF)))
+        x1 = min(width, int(math.floor(u + ex - HALF)) + 1)
+        y0 = max(0, int(math.ceil(v - ey - HALF)))
+        y1 = min(height, int(math.floor(v + ey - HALF)) + 1)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        box[g, 0], box[g, 1], box[g, 2], box[g, 3] = x0, x1, y0, y1
+        ntile[g] = ((x1 - 1) // TILE - x0 // TILE + 1) * ((y1 - 1) // TILE - y0 // TILE + 1)
+
+
+@njit(parallel=True, **_JIT)
+def _sort_tiles(offsets, inst_gid, depths):
+    """Stable depth sort of every tile's list (lists arrive in index order, so ties keep
+    the lower index first, like the reference's stable global sort)."""
+    for t in prange(offsets.shape[0] - 1):
+        a, b = offsets[t], offsets[t + 1]
+        if b - a > 1:
+            # Unique int64 keys (depth bits, then position) sort faster than a stable
+            # argsort; positive float32 depths order like their bit patterns.
+            keys = np.empty(b - a, np.int64)
+            for j in range(b - a):
+                d = max(depths[inst_gid[a + j]], F0)
+                keys[j] = (np.int64(np.float32(d).view(np.int32)) << 32) | j
+            keys.sort()
+            ids = inst_gid[a:b].copy()
+            for j in range(b - a):
+                inst_gid[a + j] = ids[keys[j] & 0xFFFFFFFF]
+
+
+@njit(**_JIT)
+def _fill(box, ntile, tiles_x, tiles_y):
+    """Counting sort of instances by tile (serial; lists come out in Gaussian index order)."""
+    n = box.shape[0]
+    counts = np.zeros(tiles_x * tiles_y + 1, np.int64)
+    for g in range(n):
+        if ntile[g] > 0:
+            for ty in range(box[g, 2] // TILE, (box[g, 3] - 1) // TILE + 1):
+                for tx in range(box[g, 0] // TILE, (box[g, 1] - 1) // TILE + 1):
+                    counts[ty * tiles_x + tx + 1] += 1
+    offsets = np.cumsum(counts)
+    cursor = offsets[:-1].copy()
+    inst_gid = np.empty(offsets[-1], np.int32)
+    for g in range(n):
+        if ntile[g] > 0:
+            for ty in range(box[g, 2] // TILE, (box[g, 3] - 1) // TILE + 1):
+                for tx in range(box[g, 0] // TILE, (box[g, 1] - 1) // TILE + 1):
+                    t = ty * tiles_x + tx
+                    inst_gid[cursor[t]] = g
+                    cursor[t] += 1
+    return offsets, inst_gid
+
+
+def bin_tiles(depths, means2d, extents, radii, width, height, tiles_x, tiles_y):
+    """Per-tile instance lists, each in front-to-back order.
+
+    Returns ``offsets [T+1]`` (int64), ``inst_gid [I]`` (int32 Gaussian ids),
+    ``box [N, 4]`` int32 pixel box (x0, x1, y0, y1; end exclusive) clipped to the image.
+    Boxes and the per-tile sorts run in parallel; only the counting-sort fill is serial.
+    (Plain Python on purpose: a parallel kernel called from inside another jitted
+    function is not guaranteed to run in parallel.)"""
+    n = depths.shape[0]
+    box = np.empty((n, 4), np.int32)
+    ntile = np.empty(n, np.int64)
+    _boxes(means2d, extents, radii, width, height, box, ntile)
+    offsets, inst_gid = _fill(box, ntile, tiles_x, tiles_y)
+    _sort_tiles(offsets, inst_gid, depths)
+    return offsets, inst_gid, box
+
+
+@njit(parallel=True, **_JIT)
+def gather_instances(inst_gid, means2d, conics, depths, colors, opac, log_opac, box):
+    """Copy per-Gaussian data into tile order. ``log_opac [N]`` = ``ln(max(255 o, 1))``.
+    Returns ``data [I, 11]`` float32 (mx, my, a, b, c, opacity, r, g, b, z, ln(255 o)) and
+    ``ibox [I, 4]`` int32."""
+    m = inst_gid.shape[0]
+    data = np.empty((m, 11), np.float32)
+    ibox = np.empty((m, 4), np.int32)
+    for k in prange(m):
+        g = inst_gid[k]
+        data[k, 0] = means2d[g, 0]
+        data[k, 1] = means2d[g, 1]
+        data[k, 2] = conics[g, 0]
+        data[k, 3] = conics[g, 1]
+        data[k, 4] = conics[g, 2]
+        data[k, 5] = opac[g]
+        data[k, 6] = colors[g, 0]
+        data[k, 7] = colors[g, 1]
+        data[k, 8] = colors[g, 2]
+        data[k, 9] = depths[g]
+        # sigma threshold for alpha >= 1/255 is ln(255 o) = ln(o) + ln(255); the log is per
+        # Gaussian, precomputed by the caller (instances outnumber Gaussians).
+        data[k, 10] = log_opac[g]
+        for j in range(4):
+            ibox[k, j] = box[g, j]
+    return data, ibox
+
+
+@njit(inline="always", **_JIT)
+def _row_span(a, b, c, thr, dy, mx, lo, hi):
+    """Pixel x range [x0, x1) on a row at offset ``dy`` where ``sigma <= thr`` may hold
+    (exact quadratic bound, widened by one pixel each side for rounding); clipped to
+    ``[lo, hi)``."""
+    disc = b * b * dy * dy - a * (c * dy * dy - F2 * thr)
+    if disc < F0:
+        return lo, lo
+    r = math.sqrt(disc) / a
+    cen = mx - b * dy / a - HALF
+    x0 = max(lo, int(math.floor(cen - r)) - 1)
+    x1 = min(hi, int(math.ceil(cen + r)) + 2)
+    if x1 < x0:
+        x1 = x0
+    return x0, x1
+
+
+# Per-tile state lives in ONE flat float32 array, one field per block of NPX entries, and
+# the pixel loops index it with unsigned integers: one base pointer means LLVM needs no
+# runtime alias checks, and unsigned indices drop Numba's negative-index wraparound, so the
+# inner loops vectorise. The loops are branch-free (masks and selects) for the same reason.
+NPX = TILE * TILE
+_T, _R, _G, _B, _D, _LAST, _DONE = (np.uint64(i * NPX) for i in range(7))
+_BR, _BG, _BB, _BD, _BA, _GR, _GG, _GB, _GD, _GA = (np.uint64(i * NPX) for i in range(7, 17))
+U0 = np.uint64(0)
+U8 = np.uint64(8)
+EXP_C = tuple(np.float32(1.0 / math.factorial(i)) for i in range(8))
+SIXTEENTH = np.float32(1.0 / 16.0)
+SIG_MAX = np.float32(8.0)
+
+
+@njit(inline="always", **_JIT)
+def _exp_neg(s):
+    """``exp(-s)`` for ``s`` in ``[0, 8]`` (clamped), float32, vectorisable.
+
+    ``exp(-s) = exp(-s/16)^16``: a degree-7 Taylor polynomial on ``[0, 0.5]`` (truncation
+    < 3e-9 relative before the four squarings, ~1e-6 after). Callers only need it where
+    ``alpha >= 1/255``, i.e. ``s <= ln 255 < 5.6``."""
+    y = -min(max(s, F0), SIG_MAX) * SIXTEENTH
+    e = EXP_C[7]
+    e = e * y + EXP_C[6]
+    e = e * y + EXP_C[5]
+    e = e * y + EXP_C[4]
+    e = e * y + EXP_C[3]
+    e = e * y + EXP_C[2]
+    e = e * y + EXP_C[1]
+    e = e * y + EXP_C[0]
+    e = e * e
+    e = e * e
+    e = e * e
+    return e * e
+
+
+@njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
+def raster_forward(offsets, data, ibox, width, height, tiles_x, bg, out_rgb, out_depth, out_T, out_last):
+    """Front-to-back compositing, one tile per task.
+
+    Outputs (preallocated): out_rgb [H,W,3] (background included), out_depth [H,W]
+    (sum w z), out_T [H,W] final transmittance, out_last [H,W] int32 = number of list
+    entries of the pixel's tile up to and including its last composited Gaussian."""
+    ntiles = offsets.shape[0] - 1
+    for tile in prange(ntiles):
+        tyi = tile // tiles_x
+        txi = tile - tyi * tiles_x
+        ox = txi * TILE
+        oy = tyi * TILE
+        S = np.zeros(7 * NPX, np.float32)
+        S[:NPX] = F1
+        tw = min(TILE, width - ox)
+        th = min(TILE, height - oy)
+        alive = np.float32(tw * th)
+        start = offsets[tile]
+        for k in range(start, offsets[tile + 1]):
+            mx, my = data[k, 0], data[k, 1]
+            a, b, c = data[k, 2], data[k, 3], data[k, 4]
+            op = data[k, 5]
+            r_, g_, b_, z_ = data[k, 6], data[k, 7], data[k, 8], data[k, 9]
+            thr = data[k, 10]
+            y0 = max(ibox[k, 2], oy)
+            y1 = min(ibox[k, 3], oy + th)
+            bx0 = max(ibox[k, 0], ox)
+            bx1 = min(ibox[k, 1], ox + tw)
+            narrow = bx1 - bx0 <= 8
+            kk = np.float32(k - start + 1)
+            for py in range(y0, y1):
+                dy = np.float32(py) + HALF - my
+                if narrow:  # the span test costs more than the lanes it would save
+                    x0, x1 = bx0, bx1
+                else:
+                    x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
+                    if x1 <= x0:
+                        continue
+                cyy = HALF * c * dy * dy
+                bdy = b * dy
+                stops = F0
+                # Fixed 8-wide, 8-aligned chunks with a span mask: rows of small Gaussians
+                # are only a few pixels long, too short for a vector loop with a remainder.
+                for cb in range((x0 - ox) & ~7, x1 - ox, 8):
+                    base = np.uint64((py - oy) * TILE + cb)
+                    lo = np.uint64(max(x0 - ox - cb, 0))
+                    hi = np.uint64(min(x1 - ox - cb, 8))
+                    dx0 = np.float32(ox + cb) + HALF - mx
+                    for j in range(U0, U8):
+                        p = base + j
+                        dx = dx0 + np.float32(j)
+                        sig = HALF * a * dx * dx + cyy + bdy * dx
+                        al = min(ALPHA_MAX, op * _exp_neg(sig))
+                        tp = S[_T + p]
+                        tt = tp * (F1 - al)
+                        live = (j >= lo) & (j < hi) & (sig >= F0) & (al >= ALPHA_MIN) & (S[_DONE + p] == F0)
+                        stop = live & (tt < T_MIN)
+                        take = live & (tt >= T_MIN)
+                        w = al * tp if take else F0
+                        S[_R + p] += w * r_
+                        S[_G + p] += w * g_
+                        S[_B + p] += w * b_
+                        S[_D + p] += w * z_
+                        S[_T + p] = tt if take else tp
+                        S[_LAST + p] = kk if take else S[_LAST + p]
+                        S[_DONE + p] = F1 if stop else S[_DONE + p]
+                        stops += F1 if stop else F0
+                alive -= stops
+            if alive <= F0:
+                break
+        for yy in range(th):
+            for xx in range(tw):
+                p = yy * TILE + xx
+                Y = oy + yy
+                X = ox + xx
+                tp = S[p]
+                out_rgb[Y, X, 0] = S[_R + p] + tp * bg[0]
+                out_rgb[Y, X, 1] = S[_G + p] + tp * bg[1]
+                out_rgb[Y, X, 2] = S[_B + p] + tp * bg[2]
+                out_depth[Y, X] = S[_D + p]
+                out_T[Y, X] = tp
+                out_last[Y, X] = np.int32(S[_LAST + p])
+
+
+@njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
+def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_last,
+                    g_rgb, g_alpha, g_depth):
+    """Reverse-order backward of :func:`raster_forward` (as in 3DGS).
+
+    ``g_rgb [H,W,3]``, ``g_alpha [H,W]``, ``g_depth [H,W]`` are upstream gradients.
+    Returns per-instance gradients ``[I, 10]``: (mx, my, a, b, c, opacity, r, g, b, z).
+    ``reassoc`` lets LLVM vectorise the per-Gaussian sums over pixels."""
+    ntiles = offsets.shape[0] - 1
+    grads = np.zeros((data.shape[0], 10), np.float32)
+    for tile in prange(ntiles):
+        tyi = tile // tiles_x
+        txi = tile - tyi * tiles_x
+        ox = txi * TILE
+        oy = tyi * TILE
+        tw = min(TILE, width - ox)
+        th = min(TILE, height - oy)
+        # T, last, then B* (what lies behind the current Gaussian per unit transmittance
+        # after it, initialised to the background), then upstream gradients.
+        S = np.zeros(17 * NPX, np.float32)
+        maxlast = 0
+        for yy in range(th):
+            for xx in range(tw):
+                p = yy * TILE + xx
+                Y = oy + yy
+                X = ox + xx
+                S[p] = out_T[Y, X]
+                S[_LAST + p] = np.float32(out_last[Y, X])
+                maxlast = max(maxlast, out_last[Y, X])
+                S[_BR + p] = bg[0]
+                S[_BG + p] = bg[1]
+                S[_BB + p] = bg[2]
+                S[_GR + p] = g_rgb[Y, X, 0]
+                S[_GG + p] = g_rgb[Y, X, 1]
+                S[_GB + p] = g_rgb[Y, X, 2]
+                S[_GD + p] = g_depth[Y, X]
+                S[_GA + p] = g_alpha[Y, X]
+        start = offsets[tile]
+        for k in range(start + maxlast - 1, start - 1, -1):
+            mx, my = data[k, 0], data[k, 1]
+            a, b, c = data[k, 2], data[k, 3], data[k, 4]
+            op = data[k, 5]
+            r_, g_, b_, z_ = data[k, 6], data[k, 7], data[k, 8], data[k, 9]
+            thr = data[k, 10]
+            y0 = max(ibox[k, 2], oy)
+            y1 = min(ibox[k, 3], oy + th)
+            bx0 = max(ibox[k, 0], ox)
+            bx1 = min(ibox[k, 1], ox + tw)
+            narrow = bx1 - bx0 <= 8
+            kk = np.float32(k - start)
+            s_mx = F0
+            s_my = F0
+            s_a = F0
+            s_b = F0
+            s_c = F0
+            s_o = F0
+            s_r = F0
+            s_g = F0
+            s_bb = F0
+            s_z = F0
+            for py in range(y0, y1):
+                dy = np.float32(py) + HALF - my
+                if narrow:  # the span test costs more than the lanes it would save
+                    x0, x1 = bx0, bx1
+                else:
+                    x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
+                    if x1 <= x0:
+                        continue
+                cyy = HALF * c * dy * dy
+                bdy = b * dy
+                for cb in range((x0 - ox) & ~7, x1 - ox, 8):
+                    base = np.uint64((py - oy) * TILE + cb)
+                    lo = np.uint64(max(x0 - ox - cb, 0))
+                    hi = np.uint64(min(x1 - ox - cb, 8))
+                    dx0 = np.float32(ox + cb) + HALF - mx
+                    for j in range(U0, U8):
+                        p = base + j
+                        dx = dx0 + np.float32(j)
+                        sig = HALF * a * dx * dx + cyy + bdy * dx
+                        gau = _exp_neg(sig)
+                        raw = op * gau
+                        al = min(ALPHA_MAX, raw)
+                        live = (j >= lo) & (j < hi) & (kk < S[_LAST + p]) & (sig >= F0) & (al >= ALPHA_MIN)
+                        alv = al if live else F0
+                        om = F1 - alv
+                        tb = S[_T + p] / om  # transmittance before this Gaussian
+                        wgt = alv * tb
+                        gr, gg, gb = S[_GR + p], S[_GG + p], S[_GB + p]
+                        gd, ga = S[_GD + p], S[_GA + p]
+                        s_r += wgt * gr
+                        s_g += wgt * gg
+                        s_bb += wgt * gb
+                        s_z += wgt * gd
+                        dal = tb * (gr * (r_ - S[_BR + p]) + gg * (g_ - S[_BG + p]) + gb * (b_ - S[_BB + p])
+                                    + gd * (z_ - S[_BD + p]) + ga * (F1 - S[_BA + p]))
+                        S[_BR + p] = alv * r_ + om * S[_BR + p]
+                        S[_BG + p] = alv * g_ + om * S[_BG + p]
+                        S[_BB + p] = alv * b_ + om * S[_BB + p]
+                        S[_BD + p] = alv * z_ + om * S[_BD + p]
+                        S[_BA + p] = alv + om * S[_BA + p]
+                        S[_T + p] = tb
+                        # the 0.99 clamp has zero gradient
+                        dal = dal if (live & (raw <= ALPHA_MAX)) else F0
+                        s_o += dal * gau
+                        dsig = -dal * al
+                        s_mx -= dsig * (a * dx + bdy)
+                        s_my -= dsig * (b * dx + c * dy)
+                        s_a += dsig * HALF * dx * dx
+                        s_b += dsig * dx * dy
+                        s_c += dsig * HALF * dy * dy
+            grads[k, 0] = s_mx
+            grads[k, 1] = s_my
+            grads[k, 2] = s_a
+            grads[k, 3] = s_b
+            grads[k, 4] = s_c
+            grads[k, 5] = s_o
+            grads[k, 6] = s_r
+            grads[k, 7] = s_g
+            grads[k, 8] = s_bb
+            grads[k, 9] = s_z
+    return grads
+
+
+@njit(**_JIT)
+def scatter_instances(inst_gid, grads, n):
+    """Sum per-instance gradients ``[I, 10]`` per Gaussian -> ``[N, 10]``."""
+    out = np.zeros((n, 10), np.float32)
+    for k in range(inst_gid.shape[0]):
+        g = inst_gid[k]
+        for j in range(10):
+            out[g, j] += grads[k, j]
+    return out
+
+
+@njit(parallel=True, **_JIT)
+def project_backward(means, quats, scales, view, intr, width, height, eps2d, radii,
+                     v_means2d, v_conics, v_depths, v_means, v_quats, v_scales):
+    """Backward of :func:`project_forward` for visible Gaussians (``radii > 0``); the
+    depth gradient flows for every Gaussian. Outputs are preallocated and overwritten."""
+    n = means.shape[0]
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    W = np.float32(width)
+    H = np.float32(height)
+    tan_x = HALF * W / fx
+    tan_y = HALF * H / fy
+    lxp = (W - cx) / fx + FOV_PAD * tan_x
+    lxn = cx / fx + FOV_PAD * tan_x
+    lyp = (H - cy) / fy + FOV_PAD * tan_y
+    lyn = cy / fy + FOV_PAD * tan_y
+    # Scratch matrices are allocated once per chunk of Gaussians, not per Gaussian.
+    nch = (n + CHUNK - 1) // CHUNK
+    for ch in prange(nch):
+        Rq = np.empty((3, 3), np.float32)
+        M = np.empty((3, 3), np.float32)
+        C3 = np.empty((3, 3), np.float32)
+        Rv = np.empty((3, 3), np.float32)
+        J = np.zeros((2, 3), np.float32)
+        Q = np.empty((2, 2), np.float32)
+        G = np.empty((2, 2), np.float32)
+        dR = np.empty((3, 3), np.float32)
+        t33a = np.empty((3, 3), np.float32)
+        t33b = np.empty((3, 3), np.float32)
+        Wc = np.empty((3, 3), np.float32)
+        t23 = np.empty((2, 3), np.float32)
+        S2 = np.empty((2, 2), np.float32)
+        t22 = np.empty((2, 2), np.float32)
+        V = np.empty((2, 2), np.float32)
+        dWc = np.empty((3, 3), np.float32)
+        dJ = np.empty((2, 3), np.float32)
+        dC3 = np.empty((3, 3), np.float32)
+        dM = np.empty((3, 3), np.float32)
+        for r in range(3):
+            for q in range(3):
+                Rv[r, q] = view[r, q]
+        for i in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+            v_quats[i, 0] = F0
+            v_quats[i, 1] = F0
+            v_quats[i, 2] = F0
+            v_quats[i, 3] = F0
+            v_scales[i, 0] = F0
+            v_scales[i, 1] = F0
+            v_scales[i, 2] = F0
+            gpx = F0
+            gpy = F0
+            gpz = v_depths[i]
+            if radii[i] > 0:
+                mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
+                px = view[0, 0] * mx + view[0, 1] * my + view[0, 2] * mz + view[0, 3]
+                py = view[1, 0] * mx + view[1, 1] * my + view[1, 2] * mz + view[1, 3]
+                pz = view[2, 0] * mx + view[2, 1] * my + view[2, 2] * mz + view[2, 3]
+                iz = F1 / pz
+                iz2 = iz * iz
+                # mean2d
+                gu, gv = v_means2d[i, 0], v_means2d[i, 1]
+                gpx += gu * fx * iz
+                gpy += gv * fy * iz
+                gpz -= (gu * fx * px + gv * fy * py) * iz2
+                qw, qx, qy, qz, qinv, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_rot(
+                    quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
+                s0, s1, s2 = scales[i, 0], scales[i, 1], scales[i, 2]
+                Rq[0, 0], Rq[0, 1], Rq[0, 2] = r00, r01, r02
+                Rq[1, 0], Rq[1, 1], Rq[1, 2] = r10, r11, r12
+                Rq[2, 0], Rq[2, 1], Rq[2, 2] = r20, r21, r22
+                for r in range(3):
+                    M[r, 0] = Rq[r, 0] * s0
+                    M[r, 1] = Rq[r, 1] * s1
+                    M[r, 2] = Rq[r, 2] * s2
+                for r in range(3):
+                    for q in range(3):
+                        acc = F0
+                        for j in range(3):
+                            acc += M[r, j] * M[q, j]
+                        C3[r, q] = acc
+                _mm(_mm(Rv, C3, t33a), Rv.T, Wc)
+                xc = px * iz
+                yc = py * iz
+                cl_x = xc < -lxn or xc > lxp
+                cl_y = yc < -lyn or yc > lyp
+                tx = pz * min(lxp, max(-lxn, xc))
+                ty = pz * min(lyp, max(-lyn, yc))
+                J[0, 0] = fx * iz
+                J[0, 2] = -fx * tx * iz2
+                J[1, 1] = fy * iz
+                J[1, 2] = -fy * ty * iz2
+                _mm(_mm(J, Wc, t23), J.T, S2)
+                ca = S2[0, 0] + eps2d
+                cb = S2[0, 1]
+                cc = S2[1, 1] + eps2d
+                idet = F1 / (ca * cc - cb * cb)
+                # conic Q = inv(S); dL/dS = -Q G Q with G the symmetric conic gradient
+                Q[0, 0] = cc * idet
+                Q[0, 1] = -cb * idet
+                Q[1, 0] = -cb * idet
+                Q[1, 1] = ca * idet
+                G[0, 0] = -v_conics[i, 0]  # negated: V = Q (-G) Q = dL/dS
+                G[0, 1] = -HALF * v_conics[i, 1]
+                G[1, 0] = -HALF * v_conics[i, 1]
+                G[1, 1] = -v_conics[i, 2]
+                _mm(_mm(Q, G, t22), Q, V)
+                _mm(_mm(J.T, V, t23.T), J, dWc)
+                _mm(_mm(V, J, t23), Wc, dJ)
+                _mm(_mm(Rv.T, dWc, t33a), Rv, dC3)
+                _mm(dC3, M, dM)
+                for r in range(3):  # dJ = 2 V J Wc, dM = 2 dC3 M (V, Wc, dC3 symmetric)
+                    dM[r, 0] *= F2
+                    dM[r, 1] *= F2
+                    dM[r, 2] *= F2
+                    if r < 2:
+                        dJ[r, 0] *= F2
+                        dJ[r, 1] *= F2
+                        dJ[r, 2] *= F2
+                # M = Rq diag(s)
+                gs0 = F0
+                gs1 = F0
+                gs2 = F0
+                for r in range(3):
+                    gs0 += dM[r, 0] * Rq[r, 0]
+                    gs1 += dM[r, 1] * Rq[r, 1]
+                    gs2 += dM[r, 2] * Rq[r, 2]
+                    dR[r, 0] = dM[r, 0] * s0
+                    dR[r, 1] = dM[r, 1] * s1
+                    dR[r, 2] = dM[r, 2] * s2
+                v_scales[i, 0] = gs0
+                v_scales[i, 1] = gs1
+                v_scales[i, 2] = gs2
+                w, x, y, z = qw, qx, qy, qz
+                gw = F2 * (-z * dR[0, 1] + y * dR[0, 2] + z * dR[1, 0] - x * dR[1, 2] - y * dR[2, 0] + x * dR[2, 1])
+                gx = F2 * (y * dR[0, 1] + z * dR[0, 2] + y * dR[1, 0] - w * dR[1, 2] + z * dR[2, 0] + w * dR[2, 1]
+                           - F2 * x * dR[1, 1] - F2 * x * dR[2, 2])
+                gy = F2 * (-F2 * y * dR[0, 0] + x * dR[0, 1] + w * dR[0, 2] + x * dR[1, 0] + z * dR[1, 2]
+                           - w * dR[2, 0] + z * dR[2, 1] - F2 * y * dR[2, 2])
+                gz = F2 * (-F2 * z * dR[0, 0] - w * dR[0, 1] + x * dR[0, 2] + w * dR[1, 0] - F2 * z * dR[1, 1]
+                           + y * dR[1, 2] + x * dR[2, 0] + y * dR[2, 1])
+                dot = w * gw + x * gx + y * gy + z * gz
+                v_quats[i, 0] = (gw - w * dot) * qinv
+                v_quats[i, 1] = (gx - x * dot) * qinv
+                v_quats[i, 2] = (gy - y * dot) * qinv
+                v_quats[i, 3] = (gz - z * dot) * qinv
+                # J -> camera point
+                gpz -= dJ[0, 0] * fx * iz2 + dJ[1, 1] * fy * iz2
+                if cl_x:
+                    lx = tx * iz
+                    gpz += dJ[0, 2] * fx * lx * iz2
+                else:
+                    gpx -= dJ[0, 2] * fx * iz2
+                    gpz += dJ[0, 2] * F2 * fx * px * iz2 * iz
+                if cl_y:
+                    ly = ty * iz
+                    gpz += dJ[1, 2] * fy * ly * iz2
+                else:
+                    gpy -= dJ[1, 2] * fy * iz2
+                    gpz += dJ[1, 2] * F2 * fy * py * iz2 * iz
+                # (Wc depends on the view only through the fixed camera rotation.)
+            # dL/dmeans = R^T dL/dp
+            v_means[i, 0] = view[0, 0] * gpx + view[1, 0] * gpy + view[2, 0] * gpz
+            v_means[i, 1] = view[0, 1] * gpx + view[1, 1] * gpy + view[2, 1] * gpz
+            v_means[i, 2] = view[0, 2] * gpx + view[1, 2] * gpy + view[2, 2] * gpz
