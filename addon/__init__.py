@@ -3,6 +3,8 @@
 
 import bpy
 
+from . import fcurves, rig  # noqa: F401  (scene builders; no classes to register)
+
 # Classes registered by this package, in dependency order. Modules of this package
 # append their classes here when they are added to the product.
 CLASSES: tuple = ()
