@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import torch
 import torch.nn as nn
 
@@ -165,7 +167,22 @@ class DynamicScene(nn.Module):
         self.bind_idx = idx
         self.bind_w = w.to(self.means.dtype)
 
+    def set_explicit_tangents(self, pos_out, rot_out, pos_in=None, rot_in=None) -> None:
+        """Use these tangents (e.g. edited in Blender) instead of Catmull-Rom ones.
+
+        Locks the trajectories: with explicit tangents the keys are buffers, not
+        parameters, so appearance can be fine-tuned under a fixed, artist-edited motion.
+        """
+        self.explicit_tangents = {"pos_out": pos_out, "rot_out": rot_out,
+                                  "pos_in": pos_out if pos_in is None else pos_in,
+                                  "rot_in": rot_out if rot_in is None else rot_in}
+        self.pos_keys.requires_grad_(False)
+        self.rot_keys.requires_grad_(False)
+
     def node_tangents(self) -> tuple[torch.Tensor, torch.Tensor]:
+        explicit = getattr(self, "explicit_tangents", None)
+        if explicit is not None:
+            return explicit["pos_out"], explicit["rot_out"]
         return (catmull_rom_tangents(self.key_times, self.pos_keys),
                 catmull_rom_tangents(self.key_times, self.rot_keys))
 
@@ -176,8 +193,11 @@ class DynamicScene(nn.Module):
             return self.node_centers + dp, q
         tt = torch.tensor([float(t)], device=self.key_times.device, dtype=self.key_times.dtype)
         pos_tan, rot_tan = self.node_tangents()
-        pos = hermite_eval(self.key_times, self.pos_keys, pos_tan, tt)[:, 0]
-        rot = hermite_eval_quat(self.key_times, self.rot_keys, rot_tan, tt)[:, 0]
+        explicit = getattr(self, "explicit_tangents", None)
+        pos_in = explicit["pos_in"] if explicit else None
+        rot_in = explicit["rot_in"] if explicit else None
+        pos = hermite_eval(self.key_times, self.pos_keys, pos_tan, tt, tangents_in=pos_in)[:, 0]
+        rot = hermite_eval_quat(self.key_times, self.rot_keys, rot_tan, tt, tangents_in=rot_in)[:, 0]
         return pos, rot
 
     def gaussian_transforms(self, t: float, bind_idx=None, bind_w=None) -> torch.Tensor:
@@ -209,6 +229,7 @@ class DynamicScene(nn.Module):
         """
         if self.mlp is None:
             pos_tan, rot_tan = self.node_tangents()
+            pos_tan, rot_tan = pos_tan.detach(), rot_tan.detach()
             return self.key_times, self.pos_keys.detach(), pos_tan, quat_normalize(self.rot_keys.detach()), rot_tan
         if sample_times is None:
             sample_times = torch.linspace(0, 1, 16, device=self.node_centers.device)
@@ -216,7 +237,46 @@ class DynamicScene(nn.Module):
         pos = torch.stack(pos, 1)
         rot = torch.stack(rot, 1)
         # keep quaternion signs continuous along time (q and -q are the same rotation)
-        sign = torch.sign((rot[:, 1:] * rot[:, :-1]).sum(-1)).cumprod(1)
+        dots = (rot[:, 1:] * rot[:, :-1]).sum(-1)
+        sign = torch.where(dots < 0, -torch.ones_like(dots), torch.ones_like(dots)).cumprod(1)
         rot = torch.cat([rot[:, :1], rot[:, 1:] * sign.unsqueeze(-1)], 1)
         return (sample_times, pos, catmull_rom_tangents(sample_times, pos), rot,
                 catmull_rom_tangents(sample_times, rot))
+
+
+def model_from_bundle(bundle, device="cpu") -> DynamicScene:
+    """Rebuild a trained :class:`DynamicScene` from an opened result bundle.
+
+    The bundle's explicit tangents (possibly edited in Blender) are used as they are, so
+    renders match what Blender shows. Needs ``gaussians.ply`` and a binding in
+    ``nodes.npz`` (i.e. a trained bundle).
+    """
+    from ..errors import InputError
+
+    if bundle.gaussians is None or bundle.nodes is None or bundle.nodes.bind_idx is None:
+        raise InputError("bundle has no trained Gaussians yet", bundle.path,
+                         "run `python -m engine train` to completion (or --resume it) first")
+    nd, gs = bundle.nodes, bundle.gaussians
+    t = lambda a, dt=torch.float32: torch.tensor(np.asarray(a), dtype=dt, device=device)  # noqa: E731
+    g = gs.count
+    cfg = bundle.scene.get("config", {})
+    m = DynamicScene(t(gs.means), torch.zeros(g, 3, device=device), torch.ones(g, 3, device=device),
+                     torch.full((g,), 0.5, device=device), t(nd.centers), t(nd.radii), t(nd.key_times),
+                     t(nd.pos_keys), t(nd.rot_keys), sh_degree=gs.sh_degree, motion="spline",
+                     bind_k=nd.bind_idx.shape[1],
+                     graph_idx=None if nd.graph_idx is None else t(nd.graph_idx, torch.long),
+                     node_p_dyn=None if nd.p_dyn is None else t(nd.p_dyn),
+                     extent=float(bundle.scene.get("extent", 1.0)))
+    with torch.no_grad():
+        m.quats.copy_(t(gs.quats))
+        m.log_scales.copy_(t(gs.log_scales))
+        m.opacity_logits.copy_(t(gs.opacity_logits))
+        m.sh_dc.copy_(t(gs.sh[:, :1]))
+        m.sh_rest.copy_(t(gs.sh[:, 1:]))
+    m.bind_idx = t(nd.bind_idx, torch.long)
+    m.bind_w = t(nd.bind_w)
+    m.set_explicit_tangents(t(nd.pos_tangents), t(nd.rot_tangents),
+                            None if nd.pos_tangents_in is None else t(nd.pos_tangents_in),
+                            None if nd.rot_tangents_in is None else t(nd.rot_tangents_in))
+    m.motion_source = cfg.get("motion", "spline")
+    return m
