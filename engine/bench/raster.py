@@ -23,6 +23,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 from .common import machine_description, peak_rss_mb, time_call
 
@@ -38,6 +39,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch/Numba threads (default: torch's)")
     parser.add_argument("--device", default=None, help="torch device (default: cuda for gsplat, else cpu)")
     parser.add_argument("--in-process", action="store_true", help="no subprocess per row (RSS then cumulative)")
+    parser.add_argument("--pause", type=float, default=0.0,
+                        help="seconds to sleep between rows (lets a throttled/shared VM recover)")
     parser.add_argument("--_worker", nargs=3, metavar=("BACKEND", "N", "RES"), help=argparse_suppress())
 
 
@@ -182,6 +185,13 @@ def run(args) -> list[dict]:
     for b in backends:
         for r in args.res:
             for n in args.gaussians:
+                if b == "reference" and n * r * r > 20_000_000:
+                    # dense O(N*H*W) oracle: tens of GB at these sizes
+                    rows.append({"backend": b, "gaussians": n, "width": r, "height": r,
+                                 "error": "skipped: reference is dense O(N*H*W), too large"})
+                    continue
+                if rows and args.pause > 0:
+                    time.sleep(args.pause)
                 if args.in_process:
                     rows.append(run_one(b, n, r, args.repeats, args.device))
                     continue

@@ -42,12 +42,17 @@ def knn_nodes(points: torch.Tensor, nodes: torch.Tensor, k: int, chunk_size: int
     if not 1 <= k <= n:
         raise ValueError(f"k={k} must be between 1 and the number of nodes ({n})")
     chunk = chunk_size or knn_chunk_size(n, points.element_size(), memory_budget)
-    nodes_sq = (nodes * nodes).sum(-1)  # [N]
+    # Rank in coordinates centred on the nodes: |c|² − 2p·c cancels catastrophically in
+    # float32 when the scene sits far from the origin; shifting both sets is free and exact.
+    origin = nodes.mean(0)
+    nodes_c = nodes - origin
+    nodes_sq = (nodes_c * nodes_c).sum(-1)  # [N]
     idx_out = torch.empty(points.shape[0], k, dtype=torch.long, device=points.device)
     for start in range(0, points.shape[0], chunk):  # loop over chunks, not points
-        p = points[start:start + chunk]
-        # |p|² is constant per row, so ranking by |c|² − 2 p·c is enough.
-        score = nodes_sq.unsqueeze(0) - 2.0 * (p @ nodes.T)
+        p = points[start:start + chunk] - origin
+        # |p|² is constant per row, so ranking by |c|² − 2 p·c is enough (one matmul,
+        # [chunk, N] temporaries only).
+        score = torch.addmm(nodes_sq.unsqueeze(0), p, nodes_c.T, alpha=-2.0)
         idx_out[start:start + chunk] = torch.topk(score, k, dim=1, largest=False, sorted=True).indices
     diff = points.unsqueeze(1) - nodes[idx_out]
     return idx_out, (diff * diff).sum(-1)

@@ -123,17 +123,17 @@ def blender_matrix_world_from_w2c_opencv(w2c: torch.Tensor) -> torch.Tensor:
 
 def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor | None = None) -> torch.Tensor:
     """OpenCV ``w2c [4, 4]`` of a camera at ``eye`` looking at ``target`` (world up = +z)."""
-    dtype = eye.dtype
-    up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype) if up is None else up.to(dtype)
+    dtype, device = eye.dtype, eye.device
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device) if up is None else up.to(eye)
     z = target - eye
     z = z / z.norm()
     x = torch.linalg.cross(z, up)
     if x.norm() < 1e-8:  # looking along up: pick another up
-        x = torch.linalg.cross(z, torch.tensor([0.0, 1.0, 0.0], dtype=dtype))
+        x = torch.linalg.cross(z, torch.tensor([0.0, 1.0, 0.0], dtype=dtype, device=device))
     x = x / x.norm()
     y = torch.linalg.cross(z, x)  # y points down in the image
     R = torch.stack([x, y, z], dim=0)
-    w2c = torch.eye(4, dtype=dtype)
+    w2c = torch.eye(4, dtype=dtype, device=device)
     w2c[:3, :3] = R
     w2c[:3, 3] = -R @ eye
     return w2c

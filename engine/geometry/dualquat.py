@@ -71,22 +71,25 @@ def dq_blend(dq: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tens
 
     Parameters
     ----------
-    dq : (N, 8) unit dual quaternions of the nodes.
+    dq : (..., N, 8) unit dual quaternions of the nodes (leading dims, e.g. times,
+        are batched over).
     idx : (G, K) long, node indices per output (e.g. per Gaussian).
-    w : (G, K) blend weights (normally summing to 1).
+    w : (G, K) or (..., G, K) blend weights (normally summing to 1).
 
     Returns
     -------
-    (G, 8) unit dual quaternions. Each neighbour's sign is aligned with the neighbour of
-    largest weight (``q`` and ``−q`` are the same rotation; blending must not mix the
-    two hemispheres), then ``Σ w_k Q_k`` is normalised by its real part's norm.
+    (..., G, 8) unit dual quaternions. Each neighbour's sign is aligned with the
+    neighbour of largest weight (``q`` and ``−q`` are the same rotation; blending must
+    not mix the two hemispheres, or antipodal inputs cancel), then ``Σ w_k Q_k`` is
+    normalised by its real part's norm.
     """
-    nb = dq[idx]  # [G, K, 8]
-    pivot = w.argmax(dim=-1)  # [G]
-    ref = nb.gather(1, pivot[:, None, None].expand(-1, 1, 8))[..., :4]  # [G, 1, 4]
+    nb = dq[..., idx, :]  # [..., G, K, 8]
+    w = w.to(dq.dtype).expand(nb.shape[:-1])
+    pivot = w.argmax(dim=-1, keepdim=True)  # [..., G, 1]
+    ref = nb[..., :4].gather(-2, pivot.unsqueeze(-1).expand(pivot.shape + (4,)))  # [..., G, 1, 4]
     dot = (nb[..., :4] * ref).sum(-1, keepdim=True)
     sign = torch.where(dot < 0, -torch.ones_like(dot), torch.ones_like(dot))
-    blended = (w.unsqueeze(-1).to(dq.dtype) * sign * nb).sum(1)
+    blended = (w.unsqueeze(-1) * sign * nb).sum(-2)
     return dq_normalize(blended)
 
 

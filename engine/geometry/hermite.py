@@ -48,7 +48,7 @@ def catmull_rom_tangents(key_times: torch.Tensor, keys: torch.Tensor) -> torch.T
     k = keys.shape[-2]
     if k < 2:
         return torch.zeros_like(keys)
-    kt = key_times.to(keys.dtype)
+    kt = key_times.to(keys)  # dtype and device of the keys
     first = (keys[..., 1:2, :] - keys[..., 0:1, :]) / (kt[1] - kt[0])
     last = (keys[..., -1:, :] - keys[..., -2:-1, :]) / (kt[-1] - kt[-2])
     if k == 2:
@@ -79,7 +79,7 @@ def hermite_eval(key_times: torch.Tensor, keys: torch.Tensor, tangents: torch.Te
     deriv : (..., T, C), only when ``derivative`` is true (zero outside the key range).
     """
     t = torch.as_tensor(t, dtype=keys.dtype, device=keys.device).reshape(-1)
-    kt = key_times.to(keys.dtype)
+    kt = key_times.to(keys)  # dtype and device of the keys
     k = kt.shape[0]
     if k == 1:
         vals = keys.expand(keys.shape[:-2] + (t.shape[0], keys.shape[-1]))
@@ -168,7 +168,7 @@ def hermite_fit(key_times: torch.Tensor, t: torch.Tensor, samples: torch.Tensor,
     """
     dtype = samples.dtype
     t = torch.as_tensor(t, dtype=dtype, device=samples.device)
-    kt = key_times.to(dtype)
+    kt = key_times.to(samples)  # dtype and device of the samples
     B = hermite_basis_matrix(kt, t)  # [S, K]
     valid = torch.isfinite(samples).all(-1)  # [..., S]
     w = valid.to(dtype) if weights is None else weights.to(dtype) * valid.to(dtype)

@@ -45,9 +45,9 @@ def quat_apply(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
     Uses ``v + 2w (u × v) + 2 u × (u × v)`` (no matrix), valid for unit ``q``.
     """
+    u, v = torch.broadcast_tensors(q[..., 1:], v)  # either side may carry the batch dims
     w = q[..., :1]
-    u = q[..., 1:]
-    uv = torch.cross(u, v.expand_as(u) if v.shape != u.shape else v, dim=-1)
+    uv = torch.cross(u, v, dim=-1)
     return v + 2.0 * (w * uv + torch.cross(u, uv, dim=-1))
 
 

@@ -9,7 +9,10 @@ Public API
 :class:`RenderOutput`
     ``rgb [H,W,3]``, ``alpha [H,W,1]``, ``depth [H,W,1]`` (accumulated ``sum w_i z_i``, not
     divided by alpha), ``radii [N]`` int32 (0 = not visible), ``means2d [N,2]`` (retains
-    its gradient, for densification), ``visible [N]`` bool, ``backend``.
+    its gradient; ``out.grad2d()`` gives it as ``[N,2]`` after backward, for densification),
+    ``visible [N]`` bool, ``backend``.
+:func:`engine.raster.reference.project` / ``rasterize`` and :func:`engine.raster.cpu.project`
+/ ``rasterize`` are the two composable steps behind :func:`render`.
 :func:`scales_from_log`, :func:`select_backend`, :data:`BACKENDS`.
 
 Backends

@@ -8,8 +8,8 @@ LLVM from vectorising). Kernels are compiled with ``cache=True`` and
 Pipeline (forward)::
 
     project_forward   prange over Gaussians: EWA projection, conic, radii, alpha>=1/255 box
-    bin_tiles         serial: global stable depth sort, then per-tile instance lists in
-                      depth order (so every tile list is already sorted)
+    bin_tiles         boxes (prange), counting sort of instances by tile (serial), then a
+                      per-tile depth sort (prange; ties keep the lower Gaussian index)
     gather_instances  prange: copy per-instance data into tile order (flat arrays)
     raster_forward    prange over tiles: front-to-back compositing with early stop
 
@@ -436,8 +436,9 @@ def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_
         oy = tyi * TILE
         tw = min(TILE, width - ox)
         th = min(TILE, height - oy)
-        # T, last, then B* (what lies behind the current Gaussian per unit transmittance
-        # after it, initialised to the background), then upstream gradients.
+        # T, last, then B (what lies behind the current Gaussian per unit transmittance
+        # after it, dotted with the upstream gradient; starts as g . background; fields
+        # _BG.._BA are unused), then the upstream gradients.
         S = np.zeros(17 * NPX, np.float32)
         maxlast = 0
         for yy in range(th):
@@ -448,9 +449,7 @@ def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_
                 S[p] = out_T[Y, X]
                 S[_LAST + p] = np.float32(out_last[Y, X])
                 maxlast = max(maxlast, out_last[Y, X])
-                S[_BR + p] = bg[0]
-                S[_BG + p] = bg[1]
-                S[_BB + p] = bg[2]
+                S[_BR + p] = g_rgb[Y, X, 0] * bg[0] + g_rgb[Y, X, 1] * bg[1] + g_rgb[Y, X, 2] * bg[2]
                 S[_GR + p] = g_rgb[Y, X, 0]
                 S[_GG + p] = g_rgb[Y, X, 1]
                 S[_GB + p] = g_rgb[Y, X, 2]
@@ -512,13 +511,12 @@ def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_
                         s_g += wgt * gg
                         s_bb += wgt * gb
                         s_z += wgt * gd
-                        dal = tb * (gr * (r_ - S[_BR + p]) + gg * (g_ - S[_BG + p]) + gb * (b_ - S[_BB + p])
-                                    + gd * (z_ - S[_BD + p]) + ga * (F1 - S[_BA + p]))
-                        S[_BR + p] = alv * r_ + om * S[_BR + p]
-                        S[_BG + p] = alv * g_ + om * S[_BG + p]
-                        S[_BB + p] = alv * b_ + om * S[_BB + p]
-                        S[_BD + p] = alv * z_ + om * S[_BD + p]
-                        S[_BA + p] = alv + om * S[_BA + p]
+                        # Only the upstream-weighted sum of what lies behind matters: B = sum_ch g_ch B_ch
+                        # follows the same recurrence as each channel, so one state replaces five.
+                        cdot = gr * r_ + gg * g_ + gb * b_ + gd * z_ + ga
+                        bdot = S[_BR + p]
+                        dal = tb * (cdot - bdot)
+                        S[_BR + p] = alv * cdot + om * bdot
                         S[_T + p] = tb
                         # the 0.99 clamp has zero gradient
                         dal = dal if (live & (raw <= ALPHA_MAX)) else F0
@@ -590,9 +588,13 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
         dJ = np.empty((2, 3), np.float32)
         dC3 = np.empty((3, 3), np.float32)
         dM = np.empty((3, 3), np.float32)
+        RvT = np.empty((3, 3), np.float32)
+        JT = np.empty((3, 2), np.float32)
+        t32 = np.empty((3, 2), np.float32)
         for r in range(3):
             for q in range(3):
                 Rv[r, q] = view[r, q]
+                RvT[q, r] = view[r, q]
         for i in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
             v_quats[i, 0] = F0
             v_quats[i, 1] = F0
@@ -632,7 +634,7 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
                         for j in range(3):
                             acc += M[r, j] * M[q, j]
                         C3[r, q] = acc
-                _mm(_mm(Rv, C3, t33a), Rv.T, Wc)
+                _mm(_mm(Rv, C3, t33a), RvT, Wc)
                 xc = px * iz
                 yc = py * iz
                 cl_x = xc < -lxn or xc > lxp
@@ -643,7 +645,10 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
                 J[0, 2] = -fx * tx * iz2
                 J[1, 1] = fy * iz
                 J[1, 2] = -fy * ty * iz2
-                _mm(_mm(J, Wc, t23), J.T, S2)
+                for r in range(3):  # contiguous transpose: faster than a .T view in _mm
+                    JT[r, 0] = J[0, r]
+                    JT[r, 1] = J[1, r]
+                _mm(_mm(J, Wc, t23), JT, S2)
                 ca = S2[0, 0] + eps2d
                 cb = S2[0, 1]
                 cc = S2[1, 1] + eps2d
@@ -658,9 +663,9 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
                 G[1, 0] = -HALF * v_conics[i, 1]
                 G[1, 1] = -v_conics[i, 2]
                 _mm(_mm(Q, G, t22), Q, V)
-                _mm(_mm(J.T, V, t23.T), J, dWc)
+                _mm(_mm(JT, V, t32), J, dWc)
                 _mm(_mm(V, J, t23), Wc, dJ)
-                _mm(_mm(Rv.T, dWc, t33a), Rv, dC3)
+                _mm(_mm(RvT, dWc, t33a), Rv, dC3)
                 _mm(dC3, M, dM)
                 for r in range(3):  # dJ = 2 V J Wc, dM = 2 dC3 M (V, Wc, dC3 symmetric)
                     dM[r, 0] *= F2

@@ -21,7 +21,6 @@ Semantics (shared by every backend, see :mod:`engine.raster`):
 
 from __future__ import annotations
 
-import math
 
 import torch
 
