@@ -6,9 +6,17 @@ This file only wires the three bpy sub-packages together. The reconstruction eng
 (``engine/``) never imports bpy and runs in its own Python process.
 """
 
-from . import addon, operators, panels
+try:
+    import bpy  # noqa: F401
+except ImportError:  # imported outside Blender (e.g. engine tests on a machine without bpy)
+    bpy = None
 
-_MODULES = (addon, operators, panels)
+if bpy is not None:
+    from . import addon, operators, panels
+
+    _MODULES = (addon, operators, panels)
+else:
+    _MODULES = ()
 
 
 def register():
