@@ -1,6 +1,7 @@
 """Build the installable extension zip: ``python tools/build_dist.py [--out DIR]``.
 
-Packs the files git tracks (or, outside a git checkout, every file under the repo)
+Packs the files git lists (tracked plus untracked-but-not-ignored; outside a git
+checkout, every file under the repo)
 except what ``blender_manifest.toml``'s ``[build] paths_exclude_pattern`` excludes, so
 the zip holds the add-on and the engine but no tests, docs, tools or caches. Checks that
 the packed manifest parses with ``tomllib`` and names the required fields.
@@ -40,11 +41,13 @@ def _excluded(rel: str, patterns: list[str]) -> bool:
 
 def list_files(repo: Path) -> list[str]:
     try:
-        out = subprocess.run(["git", "ls-files", "-z"], cwd=repo, capture_output=True, check=True)
+        # tracked files plus new, not ignored ones (work not committed yet still ships)
+        out = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+                             cwd=repo, capture_output=True, check=True)
         files = [f for f in out.stdout.decode().split("\0") if f]
     except (OSError, subprocess.CalledProcessError):
         files = [p.relative_to(repo).as_posix() for p in repo.rglob("*") if p.is_file()]
-    return sorted(f for f in files if (repo / f).is_file())
+    return sorted(set(f for f in files if (repo / f).is_file()))
 
 
 def build(out_dir: Path, repo: Path = REPO) -> Path:

@@ -20,5 +20,5 @@ def test_dist_zip_contents(tmp_path):
     assert manifest["id"] == "motion_splats" and manifest["type"] == "add-on"
     assert "__init__.py" in names and "engine/__main__.py" in names and "addon/fcurves.py" in names
     bad = [n for n in names if n.startswith(("tests/", "docs/", "tools/", ".ci/", ".venv/"))
-           or "__pycache__" in n or n.endswith(".pyc") or n in ("Makefile", "requirements.txt")]
+           or "__pycache__" in n or n.endswith(".pyc") or n in ("Makefile", "requirements.txt", ".gitignore", "pytest.ini")]
     assert not bad, bad

@@ -13,6 +13,7 @@ def _registered_names():
 
 def test_register_unregister_twice(extension, empty_scene):
     before = _registered_names()
+    types_before = set(dir(bpy.types))
     for _ in range(2):
         extension.register()
         added = _registered_names() - before
@@ -22,3 +23,4 @@ def test_register_unregister_twice(extension, empty_scene):
                 assert cls.__name__ in added
         extension.unregister()
         assert _registered_names() == before
+        assert set(dir(bpy.types)) == types_before

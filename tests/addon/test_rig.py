@@ -42,8 +42,10 @@ def test_rig_matches_engine_dqb(extension, empty_scene, tmp_path):
     frames, pos_tf = fcurves.engine_keys_to_frames(kt.numpy(), pos_t.numpy(), 1, 25)
     _, rot_tf = fcurves.engine_keys_to_frames(kt.numpy(), rot_t.numpy(), 1, 25)
     fcurves.write_node_fcurves(empties, frames, pos.numpy(), pos_tf, rot.numpy(), rot_tf)
-    mesh = rig.build_points_mesh("Gaussians", points.numpy(), col)
-    rig.build_rig(col, empties, centers.numpy(), radii.numpy(), mesh, idx.numpy(), w.numpy())
+    arm, mesh = rig.build_rig(col, empties, centers.numpy(), points.numpy(), idx.numpy(), w.numpy(),
+                              radii=radii.numpy(), mesh_name="Gaussians")
+    assert mesh.name == "Gaussians" and len(mesh.data.vertices) == verts and len(arm.data.bones) == n
+    assert mesh.modifiers[0].use_deform_preserve_volume
 
     def check():
         for f in (1, 6, 13.5, 25):
@@ -62,3 +64,14 @@ def test_rig_matches_engine_dqb(extension, empty_scene, tmp_path):
     bpy.ops.wm.open_mainfile(filepath=path)
     scene = bpy.context.scene
     check()
+
+
+def test_build_rig_accepts_context(extension, empty_scene):
+    """A context works too (scene collection) and the default bone length is finite."""
+    rig = extension.addon.rig
+    e = bpy.data.objects.new("n0", None)
+    bpy.context.scene.collection.objects.link(e)
+    arm, mesh = rig.build_rig(bpy.context, [e], np.zeros((1, 3)), np.ones((3, 3)),
+                              np.zeros((3, 1), np.int64), np.ones((3, 1)))
+    assert arm.name in bpy.context.scene.collection.objects and mesh.name in bpy.context.scene.collection.objects
+    assert [g.name for g in mesh.vertex_groups] == [b.name for b in arm.data.bones]
