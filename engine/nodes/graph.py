@@ -1,0 +1,43 @@
+"""Node neighbourhood graph and radii from neighbour spacing."""
+
+from __future__ import annotations
+
+import torch
+
+from ..geometry.binding import knn_nodes
+
+
+def node_graph(centers: torch.Tensor, k: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
+    """k nearest *other* nodes of every node.
+
+    Parameters
+    ----------
+    centers : (N, 3)
+    k : int, clamped to ``N − 1``.
+
+    Returns
+    -------
+    idx : (N, k') long, nearest first, never the node itself (k' = min(k, N−1)).
+    dist2 : (N, k') squared distances.
+    """
+    n = centers.shape[0]
+    kk = min(k, n - 1)
+    if kk <= 0:
+        return torch.zeros(n, 0, dtype=torch.long), torch.zeros(n, 0, dtype=centers.dtype)
+    idx, d2 = knn_nodes(centers, centers, kk + 1)
+    # Drop self: usually column 0, but with duplicate centres self may sit elsewhere.
+    not_self = idx != torch.arange(n).unsqueeze(1)
+    order = torch.argsort((~not_self).to(torch.int8), dim=1, stable=True)[:, :kk]
+    return idx.gather(1, order), d2.gather(1, order)
+
+
+def node_radii(centers: torch.Tensor, k: int = 4, factor: float = 1.0, min_radius: float = 1e-4) -> torch.Tensor:
+    """Radius = ``factor`` × mean distance to the ``k`` nearest other nodes (``(N,)``).
+
+    Dense (dynamic) regions get small radii, sparse (static) ones large, so RBF
+    weights overlap a few neighbours everywhere.
+    """
+    _, d2 = node_graph(centers, k)
+    if d2.shape[1] == 0:
+        return torch.full((centers.shape[0],), 1.0, dtype=centers.dtype)
+    return (factor * d2.clamp_min(0).sqrt().mean(1)).clamp_min(min_radius)

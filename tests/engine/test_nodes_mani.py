@@ -1,0 +1,88 @@
+"""MANI compression: per-voxel fractions, similarity priority, fg adaptivity, budget, seed."""
+
+import math
+
+import torch
+
+from engine.nodes.mani import ManiConfig, mani_compress
+
+
+def _clusters(num_vox, per_vox, dim=16, seed=0, spacing=10.0):
+    """Tight clusters centred in unit voxels ``spacing`` apart along x; returns pos, tok, vox, v_init."""
+    g = torch.Generator().manual_seed(seed)
+    vox = torch.arange(num_vox).repeat_interleave(per_vox)
+    pos = torch.stack([vox * spacing + 0.5, torch.full_like(vox, 0.5, dtype=torch.float32) * 1.0,
+                       torch.full((vox.shape[0],), 0.5)], 1).float()
+    pos = pos + 0.01 * torch.randn(pos.shape, generator=g)
+    tok = torch.randn(vox.shape[0], dim, generator=g)
+    diag = float((pos.max(0).values - pos.min(0).values).norm())
+    return pos, tok, vox, 1.0 / diag  # v_init so that one voxel = 1 world unit
+
+
+def test_merges_exactly_requested_fraction_per_voxel():
+    pos, tok, vox, v = _clusters(num_vox=6, per_vox=9)  # |A| = 5, |B| = 4 per voxel
+    for r in (0.2, 0.4, 0.6, 1.0):
+        cfg = ManiConfig(budget=0, v_init=v, dv=0.0, r_min=r, r_max=r, max_iters=1, eta=0.0)
+        res = mani_compress(pos, tok, torch.zeros(len(pos)), cfg)
+        nodes_vox = torch.zeros(res.positions.shape[0], dtype=torch.long)
+        nodes_vox[res.assignment] = vox  # a node's candidates all share its voxel
+        survivors_per_voxel = torch.bincount(nodes_vox, minlength=6)
+        expected = 9 - math.floor(r * 5 + 1e-6)
+        assert survivors_per_voxel.tolist() == [expected] * 6, (r, survivors_per_voxel)
+        # candidates never leave their voxel
+        assert torch.all(nodes_vox[res.assignment] == vox)
+
+
+def test_identical_tokens_in_static_voxel_merge_first():
+    g = torch.Generator().manual_seed(1)
+    num_vox = 10
+    pos, _, vox, v = _clusters(num_vox=num_vox, per_vox=2)
+    tok = torch.randn(2 * num_vox, 32, generator=g)  # random pairs: cos ≈ 0
+    tok[7] = tok[6]  # voxel 3 holds two identical tokens
+    # r = 1 everywhere: every voxel offers its pair; the budget cap must pick the best one.
+    cfg = ManiConfig(budget=2 * num_vox - 1, v_init=v, dv=0.0, eta=0.5, r_min=1.0, r_max=1.0)
+    res = mani_compress(pos, tok, torch.zeros(2 * num_vox), cfg)
+    assert res.positions.shape[0] == 2 * num_vox - 1
+    assert res.assignment[6] == res.assignment[7]
+    assert len(torch.unique(res.assignment[torch.arange(2 * num_vox) // 2 != 3])) == 2 * num_vox - 2
+
+
+def test_foreground_voxel_keeps_more_nodes_than_background():
+    pos, tok, vox, v = _clusters(num_vox=2, per_vox=32)
+    tok[32:] = tok[:32]  # identical token content in both voxels
+    fg = (vox == 1).float()
+    cfg = ManiConfig(budget=0, v_init=v, dv=0.0, max_iters=1)
+    res = mani_compress(pos, tok, fg, cfg)
+    nodes_vox = torch.zeros(res.positions.shape[0], dtype=torch.long)
+    nodes_vox[res.assignment] = vox
+    counts = torch.bincount(nodes_vox, minlength=2)
+    assert counts[1] > counts[0], counts
+    assert res.p_dyn[nodes_vox == 1].min() > res.p_dyn[nodes_vox == 0].max()
+
+
+def test_terminates_exactly_at_budget_and_conserves_mass():
+    g = torch.Generator().manual_seed(3)
+    pos = torch.rand(5000, 3, generator=g)
+    tok = torch.randn(5000, 24, generator=g)
+    fg = (pos[:, 0] < 0.3).float()
+    res = mani_compress(pos, tok, fg, ManiConfig(budget=300))
+    assert res.positions.shape[0] == 300
+    assert res.history[-1] == 300 and all(a >= b for a, b in zip(res.history, res.history[1:]))
+    assert torch.isclose(res.sizes.sum(), torch.tensor(5000.0))
+    assert torch.equal(torch.unique(res.assignment), torch.arange(300))
+    # merged positions are size-weighted means of their candidates
+    mean = torch.zeros(300, 3).index_add_(0, res.assignment, pos) / res.sizes.unsqueeze(1)
+    assert torch.allclose(mean, res.positions, atol=1e-4)
+    # dynamic region gets denser nodes than the static one
+    dyn_nodes = (res.positions[:, 0] < 0.3).float().mean()
+    assert dyn_nodes > 0.3 * 1.5
+
+
+def test_deterministic_under_seed():
+    g = torch.Generator().manual_seed(4)
+    pos, tok, fg = torch.rand(3000, 3, generator=g), torch.randn(3000, 8, generator=g), torch.rand(3000, generator=g)
+    a = mani_compress(pos, tok, fg, ManiConfig(budget=200, seed=7))
+    b = mani_compress(pos, tok, fg, ManiConfig(budget=200, seed=7))
+    c = mani_compress(pos, tok, fg, ManiConfig(budget=200, seed=8))
+    assert torch.equal(a.assignment, b.assignment) and torch.equal(a.positions, b.positions)
+    assert not torch.equal(a.assignment, c.assignment)
