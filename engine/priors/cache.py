@@ -1,0 +1,202 @@
+"""Versioned per-clip prior cache and :func:`compute_priors` (dependency order + progress).
+
+Layout: ``<cache_dir>/priors-v{CACHE_VERSION}/<name>-<key>.npz``. A prior's key is a
+SHA-256 over (cache version, clip identity, the prior's own parameters, the keys of the
+priors it depends on). Changing a parameter therefore invalidates exactly that prior and
+its dependents: tokens and tracks depend on nothing; depth depends on tracks (anchors);
+the motion mask depends on depth. Files are written atomically, read with
+``allow_pickle=False``.
+
+Order: tracks -> depth (anchored on triangulated static tracks; moving points fail the
+triangulation reprojection test; a *precomputed* mask is loaded first and also removes
+anchors in dynamic regions) -> dynamic mask (rigid-flow residual needs depth) -> tokens.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..fsutil import atomic_save_npz
+from . import depth as _depth
+from . import motion as _motion
+from . import precomputed as _pre
+from . import tokens as _tokens
+from . import tracks as _tracks
+
+CACHE_VERSION = 1
+ALGO_VERSIONS = {"tokens": 1, "tracks": 1, "depth": 1, "dynamic": 1}
+
+
+@dataclass
+class PriorConfig:
+    """All prior settings. ``*_path`` fields load precomputed files instead of computing."""
+
+    tokens_backend: str = "handcrafted"
+    tokens_model: str | None = None
+    patch_size: int | None = None
+    tracks_backend: str = "flow"
+    tracks_model: str | None = None
+    tracks_path: str | None = None
+    num_points: int = 2000
+    flow_width: int = 480
+    fb_thresh: float = 1.0
+    depth_backend: str = "sparse"
+    depth_model: str | None = None
+    depth_path: str | None = None
+    depth_width: int = 320
+    mask_backend: str = "motion"
+    mask_model: str | None = None
+    mask_path: str | None = None
+    mask_width: int = 320
+    foreground_classes: list | None = field(default=None)
+
+
+@dataclass
+class Priors:
+    """Results of :func:`compute_priors`. ``recomputed`` lists priors that were not cached."""
+
+    tokens: _tokens.TokenGrid
+    tracks: _tracks.Tracks
+    depth: np.ndarray
+    depth_confidence: np.ndarray
+    dynamic: np.ndarray
+    keys: dict
+    recomputed: list
+
+
+def clip_identity(frames, K, w2c) -> str:
+    """Hash of the clip content (a strided subsample of the pixels, shapes, all cameras)."""
+    h = hashlib.sha256()
+    h.update(str(frames.shape).encode())
+    h.update(np.ascontiguousarray(frames[:, ::7, ::7]).tobytes())
+    h.update(np.asarray(K, np.float64).tobytes()); h.update(np.asarray(w2c, np.float64).tobytes())
+    return h.hexdigest()
+
+
+def _file_id(path):
+    if path is None:
+        return None
+    p = Path(path)
+    st = p.stat() if p.exists() else None
+    return [str(p.resolve()), st.st_mtime_ns if st else None, st.st_size if st else None]
+
+
+def prior_key(name, clip_id, params, upstream=()) -> str:
+    blob = json.dumps({"v": CACHE_VERSION, "algo": ALGO_VERSIONS[name], "name": name, "clip": clip_id,
+                       "params": params, "up": list(upstream)}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def _load(cache, name, key):
+    if cache is None:
+        return None
+    p = cache / f"{name}-{key}.npz"
+    if not p.is_file():
+        return None
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception:  # noqa: BLE001 - a broken cache entry is recomputed
+        return None
+
+
+def _save(cache, name, key, **arrays):
+    if cache is not None:
+        atomic_save_npz(cache / f"{name}-{key}.npz", **arrays)
+
+
+def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=None, reporter=None) -> Priors:
+    """Compute (or load from cache) tracks, depth, dynamic mask and tokens for a clip.
+
+    Parameters
+    ----------
+    frames : uint8 [F,H,W,3]; K : [F,3,3]; w2c : [F,4,4]
+    config : PriorConfig
+    cache_dir : folder for the cache (None = no caching)
+    reporter : engine.protocol.Reporter, optional
+
+    Returns
+    -------
+    Priors
+    """
+    cfg = config or PriorConfig()
+    frames = np.asarray(frames); K = np.asarray(K, np.float64); w2c = np.asarray(w2c, np.float64)
+    F, H, W, _ = frames.shape
+    cache = None if cache_dir is None else Path(cache_dir) / f"priors-v{CACHE_VERSION}"
+    cid = clip_identity(frames, K, w2c)
+    keys, recomputed = {}, []
+    log = reporter.log if reporter is not None else (lambda *_a, **_k: None)
+
+    # tracks
+    tp = {"backend": cfg.tracks_backend, "model": _file_id(cfg.tracks_model), "path": _file_id(cfg.tracks_path),
+          "n": cfg.num_points, "w": cfg.flow_width, "fb": cfg.fb_thresh}
+    keys["tracks"] = k = prior_key("tracks", cid, tp)
+    z = _load(cache, "tracks", k)
+    if z is not None:
+        tracks = _tracks.Tracks(z["xy"], z["visible"], z["confidence"], z["query_frame"])
+    else:
+        recomputed.append("tracks")
+        if cfg.tracks_path:
+            tracks = _pre.load_tracks(cfg.tracks_path, F)
+        else:
+            tracks = _tracks.track_points(frames, cfg.num_points, cfg.tracks_backend, cfg.tracks_model,
+                                          cfg.flow_width, cfg.fb_thresh, reporter=reporter)
+        _save(cache, "tracks", k, **dataclasses.asdict(tracks))
+    log(f"tracks: {tracks.xy.shape[0]} points")
+
+    # depth (depends on tracks unless precomputed)
+    dp = {"backend": cfg.depth_backend, "model": _file_id(cfg.depth_model), "path": _file_id(cfg.depth_path),
+          "w": cfg.depth_width}
+    # a precomputed mask is known before depth: its dynamic regions give no anchors
+    pre_mask = _pre.load_mask(cfg.mask_path, (F, H, W)) if cfg.mask_path else None
+    up = () if cfg.depth_path else (keys["tracks"], _file_id(cfg.mask_path))
+    keys["depth"] = k = prior_key("depth", cid, dp, up)
+    z = _load(cache, "depth", k)
+    if z is not None:
+        depth, dconf = z["depth"], z["confidence"]
+    else:
+        recomputed.append("depth")
+        if cfg.depth_path:
+            depth = _pre.load_depth(cfg.depth_path, (F, H, W)); dconf = np.ones_like(depth)
+        else:
+            depth, dconf = _depth.estimate_depth(frames, K, w2c, cfg.depth_backend, cfg.depth_model, tracks=tracks,
+                                                 dynamic=pre_mask, max_width=cfg.depth_width, reporter=reporter)
+        _save(cache, "depth", k, depth=depth, confidence=dconf)
+
+    # dynamic mask (motion backend depends on depth)
+    mp = {"backend": cfg.mask_backend, "model": _file_id(cfg.mask_model), "path": _file_id(cfg.mask_path),
+          "w": cfg.mask_width, "fg": cfg.foreground_classes}
+    up = (keys["depth"],) if (cfg.mask_backend == "motion" and not cfg.mask_path) else ()
+    keys["dynamic"] = k = prior_key("dynamic", cid, mp, up)
+    z = _load(cache, "dynamic", k)
+    if z is not None:
+        dyn = z["dynamic"]
+    else:
+        recomputed.append("dynamic")
+        if pre_mask is not None:
+            dyn = pre_mask
+        else:
+            dyn = _motion.dynamic_mask(frames, K, w2c, depth, cfg.mask_backend, cfg.mask_model, cfg.mask_width,
+                                       cfg.foreground_classes, reporter=reporter)
+        _save(cache, "dynamic", k, dynamic=dyn)
+
+    # tokens
+    tkp = {"backend": cfg.tokens_backend, "model": _file_id(cfg.tokens_model), "patch": cfg.patch_size}
+    keys["tokens"] = k = prior_key("tokens", cid, tkp)
+    z = _load(cache, "tokens", k)
+    if z is not None:
+        tok = _tokens.TokenGrid(z["tokens"], z["patch_centers"], tuple(z["patch_size_px"].tolist()))
+    else:
+        recomputed.append("tokens")
+        tok = _tokens.extract_tokens(frames, cfg.tokens_backend, cfg.tokens_model, cfg.patch_size)
+        _save(cache, "tokens", k, tokens=tok.tokens, patch_centers=tok.patch_centers,
+              patch_size_px=np.asarray(tok.patch_size_px, np.float64))
+    if reporter is not None:
+        reporter.progress("priors", 4, 4)
+    return Priors(tok, tracks, depth, dconf, dyn, keys, recomputed)

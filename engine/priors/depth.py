@@ -1,0 +1,198 @@
+"""Metric depth per frame: sparse triangulation + edge-aware densification, or ONNX aligned to anchors.
+
+Anchors: ``anchors`` is a list (one per frame) of ``[A,3]`` arrays (u, v, depth) in
+continuous pixel coords / scene units, or ``None``. :func:`anchors_from_tracks` builds them
+by DLT-triangulating each track from all its visible frames (vectorised batched SVD), keeping
+points with positive depth, enough parallax and a small reprojection error. Points on moving
+objects fail the reprojection test (and, if ``dynamic [F,H,W]`` is given, observations with
+p_dyn > 0.5 are excluded), so only static structure anchors the depth. A frame with fewer
+than ``min_anchors`` own observations uses all triangulated points projected into it.
+
+``sparse`` backend: per frame, edge-aware normalised convolution at <= ``max_width`` px:
+``D = FGS(d * c) / FGS(c)`` with ``cv2.ximgproc.fastGlobalSmootherFilter`` guided by the
+frame, (in inverse depth). Dynamic regions get no anchors, so they are filled from the
+surrounding static depth. No anchors at all -> the median scene depth (confidence 0).
+
+``onnx`` backend: a monocular model (input as in :mod:`onnx_util`; output [B,H,W] or
+[B,1,H,W]; sidecar ``output`` = 'inverse' (default, MiDaS / Depth-Anything style relative
+inverse depth) or 'depth'). The prediction is aligned per frame with a robust scale+shift
+fit (IRLS, Huber) against the anchors, in inverse depth for 'inverse' models.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from . import onnx_util
+
+
+def triangulate_tracks(xy, visible, K, w2c, max_reproj=2.0, min_angle_deg=0.5):
+    """DLT triangulation of tracks. ``xy [P,F,2]``, ``visible [P,F]`` -> (X [P,3], ok [P])."""
+    P, F = visible.shape
+    Pm = np.einsum("fij,fjk->fik", K, w2c[:, :3, :])  # [F,3,4]
+    x, y = xy[..., 0:1], xy[..., 1:2]
+    A = np.stack([x * Pm[None, :, 2] - Pm[None, :, 0], y * Pm[None, :, 2] - Pm[None, :, 1]], 2)
+    A = A * visible[..., None, None]  # [P,F,2,4]
+    A = A / np.maximum(np.linalg.norm(A, axis=-1, keepdims=True), 1e-9)
+    _, _, vt = np.linalg.svd(A.reshape(P, 2 * F, 4).astype(np.float64))
+    Xh = vt[:, -1]
+    X = Xh[:, :3] / np.where(np.abs(Xh[:, 3:]) < 1e-12, 1e-12, Xh[:, 3:])
+    cam = np.einsum("fij,pj->pfi", w2c[:, :3, :3], X) + w2c[None, :, :3, 3]
+    z = cam[..., 2]
+    proj = np.einsum("fij,pfj->pfi", K, cam)
+    uv = proj[..., :2] / np.where(np.abs(proj[..., 2:]) < 1e-9, 1e-9, proj[..., 2:])
+    err = np.linalg.norm(uv - xy, axis=-1)
+    nvis = visible.sum(1)
+    ok = (nvis >= 2) & np.all(~visible | ((z > 0) & (err < max_reproj)), axis=1)
+    centres = -np.einsum("fji,fj->fi", w2c[:, :3, :3], w2c[:, :3, 3])  # [F,3]
+    rays = X[:, None] - centres[None]
+    rays /= np.maximum(np.linalg.norm(rays, axis=-1, keepdims=True), 1e-12)
+    spread = np.where(visible[..., None], rays, -np.inf).max(1) - np.where(visible[..., None], rays, np.inf).min(1)
+    spread = np.where(np.isfinite(spread), spread, 0.0)
+    angle = np.degrees(np.linalg.norm(spread, axis=-1))  # ~ ray angle spread (chord length, radians)
+    ok &= angle >= min_angle_deg
+    return X.astype(np.float32), ok
+
+
+def anchors_from_tracks(tracks, K, w2c, dynamic=None, shape=None, min_anchors=20, max_reproj=2.0):
+    """Per-frame anchors ``[A,3]`` (u, v, depth) from triangulated static tracks."""
+    xy, vis = tracks.xy.astype(np.float64), tracks.visible.copy()
+    P, F = vis.shape
+    if dynamic is not None:
+        H, W = dynamic.shape[1:]
+        u = np.clip(xy[..., 0].astype(np.int64), 0, W - 1); v = np.clip(xy[..., 1].astype(np.int64), 0, H - 1)
+        vis &= dynamic[np.arange(F)[None], v, u] <= 0.5
+    X, ok = triangulate_tracks(xy, vis, K.astype(np.float64), w2c.astype(np.float64), max_reproj)
+    Xs = X[ok].astype(np.float64)
+    out = []
+    for f in range(F):
+        sel = ok & vis[:, f]
+        cam = Xs @ w2c[f, :3, :3].T + w2c[f, :3, 3]
+        zf = (X[sel].astype(np.float64) @ w2c[f, :3, :3].T + w2c[f, :3, 3])[:, 2]
+        a = np.concatenate([xy[sel, f], zf[:, None]], 1)
+        if len(a) < min_anchors and len(Xs) and shape is not None:
+            pr = cam @ K[f].T
+            front = cam[:, 2] > 1e-6
+            uv = pr[front, :2] / pr[front, 2:]
+            H, W = shape
+            inb = (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+            a = np.concatenate([uv[inb], cam[front][inb, 2:3]], 1)
+        out.append(a.astype(np.float32))
+    return out
+
+
+def _fgs(guide, src, lam, sigma):
+    import cv2
+
+    return cv2.ximgproc.fastGlobalSmootherFilter(guide, src, lam, sigma)
+
+
+def densify(frame, anchors, max_width=320, lam=2000.0, sigma_color=8.0):
+    """Edge-aware normalised convolution of sparse anchors -> (depth [H,W], confidence [H,W])."""
+    import cv2
+
+    H, W = frame.shape[:2]
+    s = min(1.0, max_width / W)
+    w, h = max(8, int(round(W * s))), max(8, int(round(H * s)))
+    guide = cv2.resize(frame, (w, h), interpolation=cv2.INTER_AREA)
+    u = np.clip((anchors[:, 0] * s).astype(np.int64), 0, w - 1)
+    v = np.clip((anchors[:, 1] * s).astype(np.int64), 0, h - 1)
+    inv = np.zeros((h, w), np.float32); cnt = np.zeros((h, w), np.float32)
+    np.add.at(inv, (v, u), 1.0 / anchors[:, 2]); np.add.at(cnt, (v, u), 1.0)
+    num = _fgs(guide, inv, lam, sigma_color); den = _fgs(guide, cnt, lam, sigma_color)
+    fallback = float(np.median(1.0 / anchors[:, 2]))
+    ref = float(np.percentile(den, 90)) + 1e-9
+    eps = 0.02 * ref  # where support is tiny (e.g. regions walled off by edges) pull towards the median
+    dens = (num + eps * fallback) / (np.maximum(den, 0) + eps)
+    dens = np.where(dens > 1e-9, dens, fallback)
+    conf = np.clip(den / ref, 0, 1)
+    dep = cv2.resize((1.0 / dens).astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
+    return dep, cv2.resize(conf.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
+
+
+def robust_affine(pred, target, iters=10):
+    """IRLS Huber fit ``target ~ s*pred + t``; returns (s, t)."""
+    w = np.ones_like(pred)
+    s, t = 1.0, 0.0
+    for _ in range(iters):
+        A = np.stack([pred * w, w], 1)
+        s, t = np.linalg.lstsq(A, target * w, rcond=None)[0]
+        r = np.abs(s * pred + t - target)
+        c = 1.345 * max(1.4826 * np.median(r), 1e-9)
+        w = np.sqrt(np.where(r <= c, 1.0, c / np.maximum(r, 1e-12)))
+    return float(s), float(t)
+
+
+def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=None, dynamic=None, tracks=None,
+                   max_width=320, min_anchors=20, reporter=None):
+    """Dense metric depth for every frame.
+
+    Parameters
+    ----------
+    frames : uint8 [F,H,W,3]; K : [F,3,3]; w2c : [F,4,4]
+    backend : 'sparse' | 'onnx'
+    anchors : list of F arrays [A,3] (u, v, depth), optional (else built from ``tracks``)
+    dynamic : [F,H,W] p_dyn, optional (anchors where > 0.5 are dropped)
+    tracks : :class:`~engine.priors.tracks.Tracks`, used when ``anchors`` is None
+
+    Returns
+    -------
+    depth : float32 [F,H,W]
+    confidence : float32 [F,H,W] in [0,1]
+    """
+    frames = np.asarray(frames)
+    F, H, W, _ = frames.shape
+    K = np.asarray(K, np.float64); w2c = np.asarray(w2c, np.float64)
+    if anchors is None:
+        if tracks is None:
+            raise InputError("depth needs anchors or tracks.", fix="Compute tracks first (compute_priors does).")
+        anchors = anchors_from_tracks(tracks, K, w2c, dynamic, (H, W), min_anchors)
+    anchors = [np.zeros((0, 3), np.float32) if a is None else np.asarray(a, np.float32) for a in anchors]
+    if dynamic is not None:
+        anchors = [a[dynamic[f, np.clip(a[:, 1].astype(int), 0, H - 1), np.clip(a[:, 0].astype(int), 0, W - 1)] <= 0.5]
+                   for f, a in enumerate(anchors)]
+    anchors = [a[np.isfinite(a).all(1) & (a[:, 2] > 0)] for a in anchors]
+    alld = np.concatenate([a[:, 2] for a in anchors]) if anchors else np.zeros(0)
+    median = float(np.median(alld)) if len(alld) else 1.0
+    depth = np.empty((F, H, W), np.float32); conf = np.zeros((F, H, W), np.float32)
+    if backend == "sparse":
+        for f in range(F):
+            if len(anchors[f]) == 0:
+                depth[f] = median
+            else:
+                depth[f], conf[f] = densify(frames[f], anchors[f], max_width)
+            if reporter is not None:
+                reporter.progress("depth", f + 1, F)
+        return depth, conf
+    if backend != "onnx":
+        raise InputError(f"unknown depth backend {backend!r}.", fix="Use 'sparse' or 'onnx'.")
+    import cv2
+
+    sess = onnx_util.load_session(model_path)
+    side = onnx_util.read_sidecar(model_path)
+    name, layout, size, fixed = onnx_util.image_input_spec(sess, side, (384, 384))
+    kind = side.get("output", "inverse")
+    for f in range(F):
+        x = onnx_util.prepare_images(frames[f:f + 1], size, layout, side.get("mean", onnx_util.IMAGENET_MEAN),
+                                     side.get("std", onnx_util.IMAGENET_STD))
+        pred = np.asarray(sess.run(None, {name: x})[0], np.float32).reshape(size)
+        pred = cv2.resize(pred, (W, H), interpolation=cv2.INTER_LINEAR)
+        a = anchors[f]
+        if len(a) >= 3:
+            pa = pred[np.clip(a[:, 1].astype(int), 0, H - 1), np.clip(a[:, 0].astype(int), 0, W - 1)]
+            tgt = 1.0 / a[:, 2] if kind == "inverse" else a[:, 2]
+            s, t = robust_affine(pa.astype(np.float64), tgt.astype(np.float64))
+            c = 0.9
+        else:
+            ref = 1.0 / median if kind == "inverse" else median
+            s, t = ref / max(float(np.median(pred)), 1e-9), 0.0
+            c = 0.2
+        val = s * pred + t
+        if kind == "inverse":
+            val = 1.0 / np.maximum(val, 1e-6)
+        depth[f] = np.clip(val, 1e-3 * median, 1e3 * median)
+        conf[f] = c
+        if reporter is not None:
+            reporter.progress("depth", f + 1, F)
+    return depth, conf

@@ -1,0 +1,127 @@
+"""Weight-free priors on a synthetic scene with exact ground truth (tracks, depth, dynamic mask, tokens)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+import test_priors_scene as scene  # noqa: E402
+
+from engine.priors import dynamic_mask, estimate_depth, extract_tokens, track_points, triangulate_tracks  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def clip():
+    return scene.render()
+
+
+@pytest.fixture(scope="module")
+def tracks(clip):
+    return track_points(clip[0], num_points=600)
+
+
+def _far_from_square(gt, mask, r=15):
+    far = np.ones(len(gt), bool)
+    for f in range(gt.shape[1]):
+        m = cv2.dilate(mask[f].astype(np.uint8), np.ones((r, r), np.uint8))
+        u = np.clip(gt[:, f, 0].astype(int), 0, scene.W - 1); v = np.clip(gt[:, f, 1].astype(int), 0, scene.H - 1)
+        inside = (gt[:, f, 0] >= 0) & (gt[:, f, 0] < scene.W)
+        far &= ~(inside & (m[v, u] > 0))
+    return far
+
+
+def test_tracks_accurate_and_long(clip, tracks):
+    frames, depth, mask, K, w2c = clip
+    P, F = tracks.visible.shape
+    assert F == scene.F and P > 500 and tracks.xy.dtype == np.float32
+    assert tracks.confidence.shape == (P, F) and tracks.query_frame.shape == (P,)
+    assert (tracks.query_frame > 0).any()  # re-seeded on later frames
+    sel = tracks.query_frame == 0
+    gt = scene.static_track(tracks.xy[sel, 0], 0)
+    far = _far_from_square(gt, mask)
+    vis = tracks.visible[sel][far]
+    err = np.linalg.norm(tracks.xy[sel][far] - gt[far], axis=-1)[vis]
+    assert far.sum() > 200
+    assert np.median(err) < 0.3 and np.percentile(err, 95) < 1.0
+    inview = (gt[far][:, -1, 0] > 3) & (gt[far][:, -1, 0] < scene.W - 3)
+    assert vis[inview, -1].mean() > 0.9  # survive the whole clip
+    # a point, once lost, stays lost
+    lost_then_back = (~tracks.visible[:, :-1] & tracks.visible[:, 1:]) & (np.arange(F - 1)[None] >= tracks.query_frame[:, None])
+    assert not lost_then_back.any()
+
+
+def test_triangulation_rejects_moving_points(clip, tracks):
+    frames, depth, mask, K, w2c = clip
+    X, ok = triangulate_tracks(tracks.xy, tracks.visible, K, w2c)
+    u = np.clip(tracks.xy[:, 0, 0].astype(int), 0, scene.W - 1); v = np.clip(tracks.xy[:, 0, 1].astype(int), 0, scene.H - 1)
+    on_sq = (tracks.query_frame == 0) & tracks.visible[:, :3].all(1) & mask[0, v, u]
+    erode = cv2.erode(mask[0].astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    on_sq &= erode[v, u]
+    assert on_sq.sum() > 5 and ok[on_sq].mean() < 0.2
+    static_ok = ok & (np.abs(X[:, 2] - scene.Z_BG) < 0.2)
+    assert static_ok.sum() > 200
+
+
+def test_sparse_depth_dense_and_accurate(clip, tracks):
+    frames, depth, mask, K, w2c = clip
+    d, conf = estimate_depth(frames, K, w2c, backend="sparse", tracks=tracks)
+    assert d.shape == depth.shape and d.dtype == np.float32 and np.isfinite(d).all() and (d > 0).all()
+    assert conf.min() >= 0 and conf.max() <= 1
+    absrel = np.abs(d - depth) / depth
+    assert absrel[~mask].mean() < 0.05 and absrel.mean() < 0.1
+
+
+def test_depth_without_anchors_uses_median(clip):
+    frames, depth, mask, K, w2c = clip
+    anchors = [np.array([[10.0, 10.0, 4.0], [50, 50, 4.0]])] + [None] * (scene.F - 1)
+    d, conf = estimate_depth(frames, K, w2c, anchors=anchors)
+    assert np.allclose(d[1:], 4.0) and conf[1:].max() == 0
+
+
+@pytest.mark.parametrize("use_depth", [True, False])
+def test_motion_mask_iou(clip, use_depth):
+    frames, depth, mask, K, w2c = clip
+    m = dynamic_mask(frames, K, w2c, depth=depth if use_depth else None, backend="motion")
+    assert m.shape == mask.shape and m.dtype == np.float32 and 0 <= m.min() and m.max() <= 1
+    pred = m > 0.5
+    iou = (pred & mask).sum((1, 2)) / (pred | mask).sum((1, 2))
+    assert iou.min() >= 0.5, iou
+
+
+def test_handcrafted_tokens(clip):
+    frames = clip[0]
+    g = extract_tokens(frames, "handcrafted", patch_size=16)
+    F, H, W = frames.shape[:3]
+    assert g.tokens.shape[:3] == (F, round(H / 16), round(W / 16)) and g.tokens.dtype == np.float32
+    assert np.allclose(np.linalg.norm(g.tokens, axis=-1), 1, atol=1e-5)
+    assert np.allclose(g.patch_centers[0, 0], [8, 8 * H / (16 * round(H / 16))], atol=1e-4)
+    # the same static texture patch is more similar to itself across frames than to the moving square
+    t0, t1 = g.tokens[0], g.tokens[1]
+    self_sim = np.sum(t0 * t1, -1).mean()
+    assert self_sim > 0.9
+    flat = np.zeros((1, 32, 32, 3), np.uint8); flat[..., 0] = 200
+    stripes = flat.copy(); stripes[:, :, ::4] = 0
+    a = extract_tokens(np.concatenate([flat, stripes]), patch_size=16).tokens
+    assert np.sum(a[0] * a[1], -1).max() < 0.95  # texture changes the descriptor
+
+
+def test_dynamic_prior_removes_anchors(clip, tracks):
+    from engine.priors import anchors_from_tracks
+
+    frames, depth, mask, K, w2c = clip
+    dyn = mask.astype(np.float32)
+    anchors = anchors_from_tracks(tracks, K, w2c, dynamic=dyn, shape=mask.shape[1:])
+    for f, a in enumerate(anchors):
+        assert len(a) > 20
+        inside = mask[f, a[:, 1].astype(int).clip(0, scene.H - 1), a[:, 0].astype(int).clip(0, scene.W - 1)]
+        assert not inside.any()
+        rel = np.abs(a[:, 2] - scene.Z_BG) / scene.Z_BG  # short tracks have little parallax: some noise
+        assert np.median(rel) < 0.02 and np.percentile(rel, 90) < 0.06
+    d, _ = estimate_depth(frames, K, w2c, tracks=tracks, dynamic=dyn)
+    # the moving square has no anchors: filled from the surrounding static depth
+    assert np.abs(d[mask] - scene.Z_BG).mean() < 0.5
