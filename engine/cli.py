@@ -21,6 +21,8 @@ from .protocol import Reporter
 COMMANDS = (
     "version",
     "selftest",
+    "init",
+    "train",
     "render",
     "export",
 )

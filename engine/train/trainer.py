@@ -255,6 +255,7 @@ class Trainer:
         self.step = 0
         self.history: list[dict] = []
         self.train_seconds = 0.0
+        self.initial_eval: dict | None = None
         self.track_canon = None
         if resume and self.ckpt_path.exists():
             self._load_checkpoint()
@@ -416,6 +417,7 @@ class Trainer:
             "max_radii": self.max_radii.cpu(),
             "history": [[h["step"], h["loss"], h["psnr"]] for h in self.history],
             "train_seconds": self.train_seconds,
+            "initial_eval": {k: float(v) for k, v in (self.initial_eval or {}).items()},
             # lifted track anchors are computed once from the initial model; a resumed
             # run must reuse them to reproduce the uninterrupted run
             "tracks": None if self.track_canon is None else {
@@ -462,6 +464,7 @@ class Trainer:
         self.max_radii = state["max_radii"].to(dev)
         self.history = [{"step": int(s), "loss": float(lo), "psnr": float(p)} for s, lo, p in state["history"]]
         self.train_seconds = float(state.get("train_seconds", 0.0))
+        self.initial_eval = dict(state.get("initial_eval") or {}) or None
         tracks = state.get("tracks")
         if tracks is not None:
             self.track_ids, self.track_canon = tracks["ids"].to(dev), tracks["canon"].to(dev)
@@ -608,8 +611,11 @@ class Trainer:
         """Train, evaluate on held-out frames, write the bundle; return a summary."""
         self.reporter.log(f"training {self.model.num_gaussians} Gaussians, {self.model.num_nodes} nodes, "
                           f"{self.cfg.steps} steps ({self.cfg.preset})")
+        # held-out quality of the initialisation, so every run reports its own gain
+        initial = self.evaluate() if self.step == 0 else self.initial_eval
+        self.initial_eval = initial
         self.train()
-        metrics = {"eval": self.evaluate()}
+        metrics = {"eval_init": initial, "eval": self.evaluate()}
         metrics["iterations_per_s"] = round(self.step / max(self.train_seconds, 1e-9), 3)
         path = self.export_bundle(metrics)
         return {"bundle": str(path), "steps": self.step, "gaussians": self.model.num_gaussians,

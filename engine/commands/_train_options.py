@@ -1,0 +1,76 @@
+"""Options shared by `prepare`, `init` and `train` (clip, priors, presets, ablations)."""
+
+from __future__ import annotations
+
+
+def add_clip_options(parser):
+    parser.add_argument("clip", help="clip: Nerfies/HyperNeRF or D-NeRF folder, COLMAP folder, N3DV folder, "
+                                     "clip manifest JSON (from Blender), video file or image folder")
+    parser.add_argument("--out", required=True, help="result bundle folder")
+    parser.add_argument("--preset", default="preview", choices=("preview", "standard", "high"),
+                        help="size/steps preset (default preview: minutes on a 2-core CPU)")
+    parser.add_argument("--config", help="JSON file with TrainConfig overrides (keys as in scene.json 'config')")
+    parser.add_argument("--width", type=int, help="training width in pixels (preset default)")
+    parser.add_argument("--steps", type=int, help="training steps (preset default)")
+    parser.add_argument("--nodes", type=int, dest="num_nodes", help="node budget (preset default)")
+    parser.add_argument("--init", choices=("mani", "fps", "voxel", "tracklet"), help="node initialiser (default mani)")
+    parser.add_argument("--motion", choices=("spline", "mlp", "per_frame"), help="node motion model (default spline)")
+    parser.add_argument("--max-frames", type=int, help="sub-sample the clip to at most this many frames")
+    parser.add_argument("--seed", type=int)
+    parser.add_argument("--device", choices=("auto", "cpu", "cuda"))
+    parser.add_argument("--backend", choices=("auto", "reference", "cpu", "gsplat"), help="rasteriser backend")
+    parser.add_argument("--scale", type=int, default=None, help="dataset downscale folder (Nerfies rgb/{1,2,4}x)")
+    parser.add_argument("--cache", help="priors cache folder (default: <out>/cache)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing bundle in --out")
+    pri = parser.add_argument_group("priors (ONNX models and precomputed files; all optional)")
+    pri.add_argument("--tokens-model", help="ONNX ViT feature extractor (e.g. DINOv2 ViT-S/14)")
+    pri.add_argument("--depth-model", help="ONNX monocular depth model")
+    pri.add_argument("--mask-model", help="ONNX segmentation model for the foreground prior")
+    pri.add_argument("--tracks-model", help="ONNX point tracker")
+    pri.add_argument("--depth-path", help="precomputed depth (.npy [F,H,W] or folder of 16-bit PNG)")
+    pri.add_argument("--mask-path", help="precomputed masks (folder of PNG)")
+    pri.add_argument("--tracks-path", help="precomputed tracks (.npz with xy [P,F,2], visible [P,F])")
+
+
+def config_from_args(args):
+    import json
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..train.config import preset_config
+
+    overrides = {}
+    if args.config:
+        try:
+            overrides = json.loads(Path(args.config).read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise InputError(f"cannot read config JSON ({exc})", args.config, "pass a JSON object of TrainConfig keys")
+        if not isinstance(overrides, dict):
+            raise InputError("config must be a JSON object", args.config, "e.g. {\"steps\": 2000}")
+    for key in ("width", "steps", "num_nodes", "init", "motion", "seed", "device", "backend"):
+        value = getattr(args, key, None)
+        if value is not None:
+            overrides[key] = value
+    if getattr(args, "max_frames", None):
+        overrides["max_frames"] = args.max_frames
+    return preset_config(args.preset, **overrides)
+
+
+def prior_config_from_args(args):
+    from ..priors import PriorConfig
+
+    cfg = PriorConfig()
+    if args.tokens_model:
+        cfg.tokens_backend, cfg.tokens_model = "onnx", args.tokens_model
+    if args.depth_model:
+        cfg.depth_backend, cfg.depth_model = "onnx", args.depth_model
+    if args.mask_model:
+        cfg.mask_backend, cfg.mask_model = "onnx", args.mask_model
+    if args.tracks_model:
+        cfg.tracks_backend, cfg.tracks_model = "onnx", args.tracks_model
+    cfg.depth_path, cfg.mask_path, cfg.tracks_path = args.depth_path, args.mask_path, args.tracks_path
+    return cfg
+
+
+def clip_options(args) -> dict:
+    return {"scale": args.scale} if args.scale else {}

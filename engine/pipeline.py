@@ -1,0 +1,241 @@
+"""The reconstruction pipeline: clip -> cameras -> priors -> nodes -> training.
+
+Each stage is a function that the CLI commands (``prepare``, ``init``, ``train``) and the
+demo call; stages cache what they can, emit progress through a
+:class:`~engine.protocol.Reporter`, and raise :class:`~engine.errors.InputError` for bad
+input. Everything runs at the training resolution (``TrainConfig.width``): frames are
+downscaled once and the priors are computed on those frames, so all maps and tracks
+share one pixel grid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import bundle as B
+from .errors import InputError
+from .protocol import Reporter
+from .train.config import TrainConfig
+from .train.data import TrainingData
+
+
+@dataclasses.dataclass
+class PreparedClip:
+    """A clip at training resolution with its priors (all numpy).
+
+    Attributes
+    ----------
+    frames : (F, H, W, 3) uint8.
+    K : (F, 3, 3) intrinsics at this resolution; w2c : (F, 4, 4); times : (F,).
+    train_idx, val_idx : frame indices.
+    priors : the object returned by :func:`engine.priors.compute_priors`.
+    frame_numbers : (F,) scene frame numbers; fps; extent; source path.
+    """
+
+    frames: np.ndarray
+    K: np.ndarray
+    w2c: np.ndarray
+    times: np.ndarray
+    train_idx: np.ndarray
+    val_idx: np.ndarray
+    priors: object
+    frame_numbers: np.ndarray
+    fps: float
+    extent: float
+    source: str
+
+
+def load_frames_at_width(clip, width: int, reporter: Reporter | None = None, max_frames: int = 0):
+    """All frames of ``clip`` resized to ``width`` px wide (aspect kept), with matching K.
+
+    Returns ``frames [F, h, w, 3] uint8``, ``K [F, 3, 3]``, the frame indices used.
+    """
+    import cv2
+
+    idx = np.arange(clip.num_frames)
+    if max_frames and clip.num_frames > max_frames:
+        idx = np.unique(np.linspace(0, clip.num_frames - 1, max_frames).round().astype(int))
+    width = min(int(width), clip.width)
+    height = max(1, int(round(clip.height * width / clip.width)))
+    frames = np.empty((len(idx), height, width, 3), np.uint8)
+    for j, i in enumerate(idx):  # one decode + resize per frame (I/O bound)
+        img = clip.load_frame(int(i), downscale=1)
+        frames[j] = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+        if reporter is not None:
+            reporter.progress("load frames", j + 1, len(idx))
+    K = clip.K[idx].copy()
+    K[:, 0, :] *= width / clip.width
+    K[:, 1, :] *= height / clip.height
+    return frames, K, idx
+
+
+def scene_extent(w2c: np.ndarray, depth: np.ndarray | None = None) -> float:
+    """A robust scene radius: camera spread plus the median scene depth."""
+    R, t = w2c[:, :3, :3], w2c[:, :3, 3]
+    centers = -np.einsum("fji,fj->fi", R, t)
+    spread = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 0.0
+    med = float(np.median(depth[depth > 0])) if depth is not None and (depth > 0).any() else 1.0
+    return max(spread + med, 1e-3)
+
+
+def training_data(prep: PreparedClip, device="cpu") -> TrainingData:
+    """Tensors for :class:`~engine.train.trainer.Trainer` from a prepared clip."""
+    pr = prep.priors
+    f = lambda a: None if a is None else torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32,  # noqa
+                                                         device=device)
+    tracks = getattr(pr, "tracks", None)
+    return TrainingData(
+        images=torch.as_tensor(prep.frames, device=device).float() / 255.0,
+        K=f(prep.K), w2c=f(prep.w2c), times=f(prep.times),
+        train_idx=torch.as_tensor(prep.train_idx, dtype=torch.long, device=device),
+        val_idx=torch.as_tensor(prep.val_idx, dtype=torch.long, device=device),
+        depth=f(getattr(pr, "depth", None)), fg=f(getattr(pr, "dynamic", None)),
+        tracks_xy=None if tracks is None else f(tracks.xy),
+        tracks_vis=None if tracks is None else torch.as_tensor(tracks.visible, dtype=torch.bool, device=device),
+        extent=prep.extent, frame_numbers=torch.as_tensor(prep.frame_numbers), fps=prep.fps,
+    ).validate()
+
+
+def node_arrays_from(nodeset) -> B.NodeArrays:
+    """Accept a NodeArrays, or any node set exposing ``to_npz_dict()``."""
+    if isinstance(nodeset, B.NodeArrays):
+        return nodeset
+    return B.NodeArrays.from_dict(nodeset.to_npz_dict())
+
+
+# ----------------------------------------------------------------------------------
+# Stages
+# ----------------------------------------------------------------------------------
+def open_clip(path, reporter: Reporter | None = None, solve: bool = True, **options):
+    """Read a clip (any supported layout); solve cameras with COLMAP when it has none."""
+    from .io import load_clip
+
+    clip = load_clip(path, **options)
+    if not clip.has_cameras:
+        if not solve:
+            raise InputError("clip has no cameras", path, "export cameras from Blender or drop --no-solve")
+        from .io.solve import solve_cameras
+
+        if reporter is not None:
+            reporter.log("no cameras in the clip: solving them with COLMAP (CPU)")
+        clip = solve_cameras(clip)
+    clip.validate_cameras()
+    return clip
+
+
+def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter: Reporter | None = None) -> PreparedClip:
+    """Frames at training resolution plus priors computed on the training frames.
+
+    Priors (tracks, depth, dynamic mask, tokens) are computed on the *training* frames
+    only, in time order, because they chain optical flow through the monocular sequence;
+    held-out frames (another camera) get zero depth/mask and no track samples.
+    """
+    from .priors import PriorConfig, compute_priors
+
+    reporter = reporter or Reporter(quiet=True)
+    frames, K, idx = load_frames_at_width(clip, cfg.width, reporter, cfg.max_frames)
+    pos = {int(i): j for j, i in enumerate(idx)}
+    train = np.array(sorted(pos[i] for i in clip.split.get("train", range(clip.num_frames)) if i in pos))
+    val = np.array(sorted(pos[i] for i in clip.split.get("val", []) if i in pos), dtype=np.int64)
+    if len(train) < 2:
+        raise InputError(f"only {len(train)} training frame(s) after sub-sampling", clip.source,
+                         "use a clip with at least 2 training frames (or raise max_frames)")
+    w2c = clip.w2c[idx]
+    times = clip.times[idx]
+    order = train[np.argsort(times[train], kind="stable")]
+    pr = compute_priors(frames[order], K[order], w2c[order], prior_config or PriorConfig(), cache_dir=cache_dir,
+                        reporter=reporter)
+    f, h, w = frames.shape[:3]
+    depth = np.zeros((f, h, w), np.float32)
+    dynamic = np.zeros((f, h, w), np.float32)
+    depth[order] = pr.depth
+    dynamic[order] = pr.dynamic
+    xy = np.zeros((pr.tracks.xy.shape[0], f, 2), np.float32)
+    vis = np.zeros((pr.tracks.xy.shape[0], f), bool)
+    xy[:, order] = pr.tracks.xy
+    vis[:, order] = pr.tracks.visible
+    full = dataclasses.replace(pr.tracks, xy=xy, visible=vis) if dataclasses.is_dataclass(pr.tracks) else pr.tracks
+    priors = _FramePriors(tokens=pr.tokens, tracks=full, depth=depth, dynamic=dynamic, train_order=order,
+                          recomputed=list(getattr(pr, "recomputed", [])))
+    start = int(clip.meta.get("frame_start", 1)) if isinstance(clip.meta, dict) else 1
+    return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
+                        frame_numbers=start + idx, fps=float(clip.fps or 24.0),
+                        extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""))
+
+
+@dataclasses.dataclass
+class _FramePriors:
+    """Priors laid out over all prepared frames (zeros / invisible on held-out frames)."""
+
+    tokens: object          # TokenGrid over the training frames in ``train_order``
+    tracks: object          # Tracks with xy [P, F, 2], visible [P, F] over all frames
+    depth: np.ndarray       # [F, H, W]
+    dynamic: np.ndarray     # [F, H, W]
+    train_order: np.ndarray  # frame indices of the training frames, in time order
+    recomputed: list
+
+
+def initial_nodes(prep: PreparedClip, cfg: TrainConfig) -> B.NodeArrays:
+    """Run the configured node initialiser (MANI by default) on the training frames."""
+    from .nodes import NodeInitConfig, initialise_nodes
+    from .nodes.mani import ManiConfig
+
+    order = prep.priors.train_order
+    n_train = len(order)
+    num_keys = cfg.num_keys or max(4, min(24, n_train // 4))
+    init_cfg = NodeInitConfig(method=cfg.init, mani=ManiConfig(budget=cfg.num_nodes), num_keys=num_keys,
+                              num_keyframes=min(12, n_train), seed=cfg.seed)
+    tr = prep.priors.tracks
+    nodes = initialise_nodes(prep.priors.depth[order], prep.K[order], prep.w2c[order], prep.times[order],
+                             prep.priors.tokens.tokens, prep.priors.tokens.patch_centers,
+                             prep.priors.dynamic[order], tr.xy[:, order], tr.visible[:, order], init_cfg)
+    return node_arrays_from(nodes)
+
+
+def bundle_scene(prep: PreparedClip, cfg: TrainConfig, **extra) -> dict:
+    """``scene.json`` content for a prepared clip (cameras of every frame, time map)."""
+    val = set(prep.val_idx.tolist())
+    h, w = prep.frames.shape[1:3]
+    cams = [{"frame": int(prep.frame_numbers[i]), "w2c": prep.w2c[i], "K": prep.K[i], "width": int(w),
+             "height": int(h), "time": float(np.clip(prep.times[i], 0, 1)), "split": "val" if i in val else "train"}
+            for i in range(len(prep.times))]
+    return B.new_scene(int(prep.frame_numbers.min()), int(prep.frame_numbers.max()), prep.fps, cams,
+                       config=cfg.to_dict(), extent=prep.extent, source={"clip": prep.source, "width": int(w)},
+                       **extra)
+
+
+def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None = None, resume: bool = False,
+                overwrite: bool = False, cache_dir=None, prior_config=None, clip_options=None) -> dict:
+    """The whole job: clip -> cameras -> priors -> nodes -> training -> bundle."""
+    from .train.trainer import Trainer
+
+    reporter = reporter or Reporter(quiet=True)
+    out_dir = B.check_output_dir(out_dir, overwrite=overwrite, resume=resume)
+    clip = open_clip(clip_path, reporter, **(clip_options or {}))
+    prep = prepare(clip, cfg, prior_config, cache_dir=cache_dir or Path(out_dir) / "cache", reporter=reporter)
+    nodes_path = Path(out_dir) / B.NODES_FILE
+    if resume and nodes_path.exists():
+        nodes = B.read_nodes(nodes_path)
+    else:
+        reporter.progress("nodes", 0, 1)
+        nodes = initial_nodes(prep, cfg)
+        # show nodes before training finishes: the add-on can build them right away
+        B.save_bundle(out_dir, bundle_scene(prep, cfg, stage="init"), nodes)
+        reporter.progress("nodes", 1, 1, nodes=nodes.count)
+    device = _device(cfg.device)
+    data = training_data(prep, device)
+    trainer = Trainer(data, nodes, cfg, out_dir, reporter, resume=resume,
+                      scene_extra={"source": {"clip": prep.source, "width": int(prep.frames.shape[2])}})
+    return trainer.run()
+
+
+def _device(name: str):
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("CUDA was requested but no CUDA device is available", None, "use --device cpu or auto")
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
