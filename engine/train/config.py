@@ -84,6 +84,12 @@ class TrainConfig:
     percent_dense: float = 0.01
     opacity_prune: float = 0.005
     opacity_reset_every: int = 0         # 0 = never (short runs do better without)
+    # node densification/pruning at the Gaussian densification steps
+    node_densify: bool = True
+    node_spawn_factor: float = 2.5       # a Gaussian farther than this x its node's radius asks for a node
+    node_add_max: int = 32               # new nodes per densification step
+    max_nodes_factor: float = 1.5        # node cap = factor x num_nodes
+    node_prune_weight: float = 1e-3      # nodes whose summed binding weight is below this are removed
 
     # bookkeeping
     checkpoint_every: int = 200

@@ -185,15 +185,19 @@ def make_optimizer(model: DynamicScene, cfg: TrainConfig) -> torch.optim.Adam:
     return torch.optim.Adam(groups, eps=1e-15)
 
 
+NODE_PARAMS = ("node_log_radii", "pos_keys", "rot_keys")
+
+
 def _edit_gaussians(model: DynamicScene, opt: torch.optim.Adam, keep: torch.Tensor | None,
-                    extra: dict[str, torch.Tensor] | None) -> None:
-    """Keep rows ``keep`` of every per-Gaussian parameter and append ``extra`` rows.
+                    extra: dict[str, torch.Tensor] | None, names=GAUSSIAN_PARAMS) -> None:
+    """Keep rows ``keep`` of every per-Gaussian (or per-node, with ``names=NODE_PARAMS``)
+    parameter and append ``extra`` rows.
 
     Adam moments follow: kept rows keep theirs, new rows start at zero.
     """
     for group in opt.param_groups:
         name = group["name"]
-        if name not in GAUSSIAN_PARAMS:
+        if name not in names or extra is not None and name not in extra:
             continue
         old = group["params"][0]
         state = opt.state.pop(old, None)
@@ -393,7 +397,58 @@ class Trainer:
             keep = m.opacities() > cfg.opacity_prune
             _edit_gaussians(m, self.opt, keep, extra or None)
             m.rebind()
+            if cfg.node_densify:
+                self._densify_nodes()
             self._reset_densify_stats()
+
+    def _densify_nodes(self):
+        """Add nodes where Gaussians are far from every node; drop nodes nobody uses.
+
+        A Gaussian farther than ``node_spawn_factor`` times its nearest node's radius is
+        poorly controlled. Up to ``node_add_max`` such Gaussians (farthest-point spread)
+        become new nodes that start with their parent node's motion, shifted to their
+        position; nodes whose summed binding weight is ~0 are removed. The graph and the
+        binding are rebuilt afterwards.
+        """
+        from ..nodes.baselines import farthest_point_sampling
+        from ..nodes.graph import node_graph
+
+        cfg, m = self.cfg, self.model
+        with torch.no_grad():
+            n = m.num_nodes
+            load = torch.zeros(n, device=self.device).index_add_(0, m.bind_idx.reshape(-1),
+                                                                 m.bind_w.reshape(-1).to(torch.float32))
+            keep = load >= cfg.node_prune_weight
+            if int(keep.sum()) < m.bind_k:
+                keep[:] = True
+            parent = m.bind_idx[:, 0]
+            dist = (m.means - m.node_centers[parent]).norm(dim=-1)
+            far = torch.nonzero(dist > cfg.node_spawn_factor * m.node_radii()[parent]).squeeze(1)
+            cap = int(cfg.max_nodes_factor * cfg.num_nodes)
+            room = max(0, min(cfg.node_add_max, cap - int(keep.sum())))
+            extra = None
+            if len(far) and room:
+                pick = far[farthest_point_sampling(m.means[far].cpu(), room, cfg.seed).to(self.device)]
+                par = parent[pick]
+                new_c = m.means[pick].detach().clone()
+                extra = {"node_log_radii": m.node_log_radii[par].detach().clone()}
+                if m.pos_keys is not None:
+                    shift = (new_c - m.node_centers[par]).unsqueeze(1)
+                    extra["pos_keys"] = m.pos_keys[par].detach() + shift
+                    extra["rot_keys"] = m.rot_keys[par].detach().clone()
+                new_centers = torch.cat([m.node_centers[keep], new_c])
+                new_pdyn = torch.cat([m.node_p_dyn[keep], m.node_p_dyn[par]])
+            elif bool(keep.all()):
+                return
+            else:
+                new_centers, new_pdyn = m.node_centers[keep], m.node_p_dyn[keep]
+            _edit_gaussians(m, self.opt, keep, extra, names=NODE_PARAMS)
+            m.node_centers = new_centers.contiguous()
+            m.node_p_dyn = new_pdyn.contiguous()
+            k = m.graph_idx.shape[1] if m.graph_idx.numel() else 0
+            if k:
+                m.graph_idx = node_graph(new_centers.cpu(), k)[0].to(self.device)
+            m.rebind()
 
     def _reset_opacity(self):
         with torch.no_grad():

@@ -110,3 +110,20 @@ def test_ablation_motion_models_train(tmp_path, scene, motion):
     assert res["eval"]["psnr"] > 15
     bundle = B.load_bundle(tmp_path / motion)
     assert bundle.nodes.pos_keys.shape[1] >= 2
+
+
+def test_node_densification_adds_nodes_where_gaussians_lack_them(tmp_path, scene):
+    data, truth = scene
+    nodes = make_nodes(truth)
+    wall_only = B.NodeArrays(**{k: (v[:20] if k not in ("key_times", "graph_idx") else v)
+                                for k, v in nodes.to_dict().items() if k != "graph_idx"})
+    cfg = _cfg(steps=40, densify_from=10, densify_until=35, densify_every=10, node_add_max=8, num_nodes=20)
+    trainer = Trainer(data, wall_only, cfg, tmp_path / "nd")
+    before = trainer.model.num_nodes
+    trainer.train()
+    m = trainer.model
+    assert before < m.num_nodes <= int(cfg.max_nodes_factor * cfg.num_nodes)
+    # a node now sits near the moving blob (canonical blob around the origin, wall at y=1.5)
+    assert float(m.node_centers[:, 1].min()) < 1.0
+    assert m.bind_idx.max() < m.num_nodes and torch.isfinite(m.bind_w).all()
+    assert m.pos_keys.shape[0] == m.num_nodes == m.node_log_radii.shape[0]
