@@ -113,7 +113,7 @@ def interpolate_poses(w2c: np.ndarray, registered: np.ndarray, times: np.ndarray
 def solve_cameras(clip: Clip, masks=None, *, max_size: int = 320, max_frames: int | None = None,
                   camera_model: str = "SIMPLE_RADIAL", max_features: int = 4096, overlap: int = 8,
                   min_registered: float = 0.5, mask_dilate: int = 5, num_threads: int = 2,
-                  init_min_tri_angle: float = 4.0, seed: int = 0, workdir=None) -> Clip:
+                  init_min_tri_angle: float = 4.0, seed: int = 0, workdir=None, log_level: int = 1) -> Clip:
     """Solve per-frame cameras (shared intrinsics) for ``clip`` with pycolmap.
 
     Parameters
@@ -137,6 +137,9 @@ def solve_cameras(clip: Clip, masks=None, *, max_size: int = 320, max_frames: in
         Mapper random seed (deterministic results).
     workdir : path, optional
         Keep the COLMAP database/images here (default: a temporary folder, removed).
+    log_level : int
+        Least severe COLMAP (glog) message shown while solving: 0 info, 1 warning
+        (default: COLMAP's per-step INFO lines are hidden), 2 error, 3 fatal only.
 
     Returns
     -------
@@ -160,6 +163,9 @@ def solve_cameras(clip: Clip, masks=None, *, max_size: int = 320, max_frames: in
     w, h = max(1, int(round(W * s))), max(1, int(round(H * s)))
     tmp = tempfile.TemporaryDirectory(prefix="ms_solve_") if workdir is None else None
     work = Path(tmp.name if tmp else workdir)
+    # COLMAP logs every step at INFO to stderr (hundreds of lines); keep warnings and errors
+    min_level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(int(min_level), int(log_level))
     try:
         imdir, mdir = work / "images", work / "masks"
         imdir.mkdir(parents=True, exist_ok=True)
@@ -209,6 +215,7 @@ def solve_cameras(clip: Clip, masks=None, *, max_size: int = 320, max_frames: in
         out.mkdir(exist_ok=True)
         recs = pycolmap.incremental_mapping(db, imdir, out, options=iopt)
     finally:
+        pycolmap.logging.minloglevel = min_level
         if tmp is not None:
             tmp.cleanup()
     need = max(3, int(np.ceil(min_registered * F)))
