@@ -3,18 +3,20 @@
 
 import bpy
 
-from . import fcurves, rig  # noqa: F401  (scene builders; no classes to register)
+from . import build, fcurves, properties, rig  # noqa: F401  (scene builders)
 
 # Classes registered by this package, in dependency order. Modules of this package
 # append their classes here when they are added to the product.
-CLASSES: tuple = ()
+CLASSES: tuple = (properties.MOTIONSPLATS_PG_result,)
 
 _register, _unregister = bpy.utils.register_classes_factory(CLASSES)
 
 
 def register():
     _register()
+    properties.register_scene_props()
 
 
 def unregister():
+    properties.unregister_scene_props()
     _unregister()

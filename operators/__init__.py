@@ -3,9 +3,11 @@
 
 import bpy
 
+from . import result_ops
+
 # Classes registered by this package, in dependency order. Modules of this package
 # append their classes here when they are added to the product.
-CLASSES: tuple = ()
+CLASSES: tuple = (*result_ops.CLASSES,)
 
 _register, _unregister = bpy.utils.register_classes_factory(CLASSES)
 
