@@ -1,0 +1,275 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""Running engine jobs, kept in a module-level registry (not in ``bpy.data``).
+
+A file load replaces ``bpy.data`` but not Python modules, so jobs survive opening
+another .blend. A persistent ``bpy.app.timers`` function (:func:`_timer`) calls
+:func:`drain` every :data:`INTERVAL_S`: it moves events from each job's
+:class:`~.bridge.EngineProcess` into the job's progress fields, tags the UI for redraw
+and, when a job ends, calls its completion callback once (on the main thread).
+
+Timers do not fire in background mode (``blender -b``, the bpy module); tests and
+scripts call :func:`drain` themselves (or :func:`wait`).
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import bpy
+
+from .bridge import EngineProcess
+
+INTERVAL_S = 0.15
+#: Finished jobs kept for the UI (per kind the latest is shown).
+KEEP_FINISHED = 8
+
+_JOBS: "collections.OrderedDict[int, Job]" = collections.OrderedDict()
+_IDS = itertools.count(1)
+
+
+@dataclass
+class Job:
+    """One run of the engine (or of the environment setup) and what the UI shows of it."""
+
+    id: int
+    kind: str  # "check_engine", "env_setup", "train", ...
+    label: str
+    process: EngineProcess
+    on_complete: Callable[["Job"], None] | None = None
+    stage: str = ""
+    step: int = 0
+    total: int | None = None
+    loss: float | None = None
+    psnr: float | None = None
+    eta_s: float | None = None
+    metrics: dict = field(default_factory=dict)
+    logs: collections.deque = field(default_factory=lambda: collections.deque(maxlen=200))
+    result: dict | None = None
+    error: dict | None = None
+    state: str = "running"
+    completed: bool = False  # completion callback has run
+    callback_error: str | None = None
+    started: float = field(default_factory=time.monotonic)
+    ended: float | None = None
+
+    @property
+    def running(self) -> bool:
+        return self.state == "running"
+
+    @property
+    def factor(self) -> float:
+        """Progress of the current stage in [0, 1] (0 when the total is unknown)."""
+        if not self.total:
+            return 0.0
+        return max(0.0, min(1.0, self.step / self.total))
+
+    def error_summary(self) -> list[str]:
+        lines = list(self.process.error_summary())
+        if self.callback_error:
+            lines.append(self.callback_error)
+        return lines
+
+    def cancel(self, timeout: float = 5.0) -> None:
+        self.process.cancel(timeout=timeout)
+
+    def apply(self, event: dict) -> None:
+        kind = event.get("event")
+        if kind == "progress":
+            self.stage = str(event.get("stage", ""))
+            self.step = _as_int(event.get("step"), 0)
+            self.total = _as_int(event.get("total"), None)
+            self.eta_s = _as_float(event.get("eta_s"))
+            for key, value in event.items():
+                if key not in ("v", "event", "time", "stage", "step", "total", "eta_s"):
+                    self.metrics[key] = value
+            self.loss = _as_float(event.get("loss"), self.loss)
+            self.psnr = _as_float(event.get("psnr"), self.psnr)
+        elif kind == "log":
+            self.logs.append(f"[{event.get('level', 'info')}] {event.get('message', '')}")
+        elif kind == "result":
+            self.result = event
+        elif kind == "error":
+            self.error = event
+
+
+def _as_int(value, default):
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        return default
+
+
+def _as_float(value, default=None):
+    try:
+        return float(value) if value is not None else default
+    except (TypeError, ValueError):
+        return default
+
+
+# -- registry ----------------------------------------------------------------------------
+def start(kind: str, process: EngineProcess, *, label: str = "", on_complete=None) -> Job:
+    """Start ``process`` (if not started) and track it as a job; returns the job.
+
+    A process that fails to start (bad interpreter) still becomes a job in state
+    'failed', so the UI shows the reason.
+    """
+    if process.state == "idle":
+        process.start()
+    job = Job(id=next(_IDS), kind=kind, label=label or kind.replace("_", " ").title(), process=process,
+              on_complete=on_complete)
+    _JOBS[job.id] = job
+    _prune()
+    ensure_timer()
+    drain()
+    return job
+
+
+def get(job_id: int) -> Job | None:
+    return _JOBS.get(int(job_id))
+
+
+def all_jobs() -> list[Job]:
+    return list(_JOBS.values())
+
+
+def running(kind: str | None = None) -> list[Job]:
+    return [j for j in _JOBS.values() if j.running and (kind is None or j.kind == kind)]
+
+
+def latest(kind: str | None = None) -> Job | None:
+    """The newest running job (of ``kind``), else the newest job of that kind."""
+    jobs = [j for j in _JOBS.values() if kind is None or j.kind == kind]
+    for job in reversed(jobs):
+        if job.running:
+            return job
+    return jobs[-1] if jobs else None
+
+
+def remove(job_id: int) -> None:
+    job = _JOBS.pop(int(job_id), None)
+    if job is not None and job.running:
+        job.cancel()
+
+
+def cancel_all(timeout: float = 5.0) -> None:
+    for job in running():
+        job.cancel(timeout=timeout)
+
+
+def clear(cancel: bool = True) -> None:
+    """Forget every job (cancelling running ones). Used by tests and unregister."""
+    if cancel:
+        cancel_all()
+    _JOBS.clear()
+
+
+def _prune() -> None:
+    finished = [j for j in _JOBS.values() if not j.running]
+    for job in finished[:-KEEP_FINISHED] if len(finished) > KEEP_FINISHED else []:
+        _JOBS.pop(job.id, None)
+
+
+# -- the pump ----------------------------------------------------------------------------
+def drain() -> bool:
+    """Apply pending events to every running job; finish jobs whose process ended.
+
+    Returns True when anything changed (the UI was tagged for redraw).
+    """
+    changed = False
+    for job in list(_JOBS.values()):
+        if job.completed:
+            continue
+        events = job.process.poll_events()
+        for event in events:
+            job.apply(event)
+        changed |= bool(events)
+        state = job.process.state
+        if state != job.state:
+            job.state = state
+            changed = True
+        if state in ("finished", "failed", "cancelled") and not job.completed:
+            job.completed = True
+            job.ended = time.monotonic()
+            if job.error is None and job.process.error_event is not None:
+                job.error = job.process.error_event
+            if job.on_complete is not None:
+                try:
+                    job.on_complete(job)
+                except Exception as exc:  # noqa: BLE001 (a builder bug must not kill the timer)
+                    job.callback_error = f"Building the result failed: {type(exc).__name__}: {exc}"
+            changed = True
+    if changed:
+        tag_redraw()
+    return changed
+
+
+def wait(job: Job, timeout: float = 60.0, step: float = 0.05) -> Job:
+    """Pump :func:`drain` until ``job`` completed (tests/scripts; blocks)."""
+    deadline = time.monotonic() + timeout
+    while not job.completed:
+        drain()
+        if job.completed:
+            break
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"job {job.label} still running after {timeout} s")
+        time.sleep(step)
+    return job
+
+
+def tag_redraw() -> None:
+    """Redraw the sidebar and the preferences wherever they are shown."""
+    wm = getattr(bpy.context, "window_manager", None)
+    if wm is None:
+        return
+    try:
+        for window in wm.windows:
+            screen = window.screen
+            if screen is None:
+                continue
+            for area in screen.areas:
+                if area.type in ("VIEW_3D", "PREFERENCES", "PROPERTIES", "CLIP_EDITOR"):
+                    area.tag_redraw()
+    except (AttributeError, ReferenceError, RuntimeError):
+        pass
+
+
+def _timer():
+    try:
+        drain()
+    except Exception as exc:  # noqa: BLE001 (keep the pump alive)
+        print(f"Motion Splats: job update failed: {type(exc).__name__}: {exc}")
+    # Keep ticking while anything runs; stop otherwise (start() re-arms the timer).
+    return INTERVAL_S if running() else None
+
+
+def ensure_timer() -> None:
+    if not bpy.app.timers.is_registered(_timer):
+        bpy.app.timers.register(_timer, first_interval=INTERVAL_S, persistent=True)
+
+
+@bpy.app.handlers.persistent
+def _on_load_post(*_args):
+    """After a file load: jobs live on in this module; make sure the pump still runs."""
+    if running():
+        ensure_timer()
+    tag_redraw()
+
+
+def register() -> None:
+    if _on_load_post not in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.append(_on_load_post)
+    if running():
+        ensure_timer()
+
+
+def unregister() -> None:
+    # Disabling the add-on stops its engines instead of leaving orphans behind.
+    cancel_all()
+    if _on_load_post in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_on_load_post)
+    if bpy.app.timers.is_registered(_timer):
+        bpy.app.timers.unregister(_timer)

@@ -1,0 +1,96 @@
+"""Shared helpers and fixtures for the engine-bridge tests (bridge, preferences, engine
+operators). Test modules import the fixtures from here (``from tests.addon._support
+import ...``) so the shared ``conftest.py`` stays untouched."""
+
+from __future__ import annotations
+
+import json
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+REPO = Path(__file__).resolve().parents[2]
+VENV_PYTHON = REPO / ".venv" / ("Scripts/python.exe" if sys.platform == "win32" else "bin/python")
+
+#: Code every fake engine starts with: an ``emit`` that writes protocol events.
+_PRELUDE = textwrap.dedent(
+    """
+    import json, os, signal, sys, time
+    def emit(event, **fields):
+        payload = {"v": 1, "event": event, "time": time.time()}
+        payload.update(fields)
+        sys.stdout.write(json.dumps(payload) + "\\n")
+        sys.stdout.flush()
+    """
+)
+
+
+def fake_engine(tmp_path: Path, name: str, body: str) -> list[str]:
+    """Write a fake engine script into ``tmp_path``; return the argv that runs it."""
+    path = tmp_path / f"{name}.py"
+    path.write_text(_PRELUDE + textwrap.dedent(body), encoding="utf-8")
+    return [sys.executable, "-u", str(path)]
+
+
+def event_line(event: str, **fields) -> str:
+    return json.dumps({"v": 1, "event": event, "time": 0.0, **fields})
+
+
+def wait_until(predicate, timeout: float = 10.0, step: float = 0.02) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(step)
+    return predicate()
+
+
+@pytest.fixture()
+def user_dir(tmp_path, monkeypatch):
+    """The extension's user folder, redirected into the test's tmp dir."""
+    folder = tmp_path / "user"
+    monkeypatch.setenv("MOTION_SPLATS_USER_DIR", str(folder))
+    return folder
+
+
+@pytest.fixture()
+def clean_jobs(extension):
+    """The job registry, emptied (running jobs killed) after the test."""
+    jobs = extension.addon.jobs
+    yield jobs
+    for job in jobs.all_jobs():
+        if job.running:
+            job.process.kill()
+            try:
+                job.process.wait(10)
+            except TimeoutError:
+                pass
+    jobs.clear(cancel=False)
+
+
+@pytest.fixture()
+def registered(extension, empty_scene, user_dir, clean_jobs):
+    """The extension registered and enabled by name, so its preferences exist.
+
+    Yields the preferences object; unregisters and removes the add-on entry after.
+    """
+    extension.register()
+    addons = bpy.context.preferences.addons
+    entry = addons.get(extension.__name__)
+    created = entry is None
+    if created:
+        entry = addons.new()
+        entry.module = extension.__name__
+    try:
+        yield entry.preferences
+    finally:
+        if created:
+            entry = addons.get(extension.__name__)
+            if entry is not None:
+                addons.remove(entry)
+        extension.unregister()
