@@ -1,13 +1,23 @@
 """Foreground / dynamic prior ``p_dyn [F,H,W]`` in [0,1].
 
-``motion`` backend (weight-free): DIS flow (<= ``max_width`` px) from each frame to its
-neighbours (f-1 and f+1) is compared with what the camera explains: with ``depth``, the
-rigid flow from K, w2c and depth (back-project, move to the neighbour camera, project);
-without depth, the Sampson distance to the epipolar geometry (F from the cameras). The
-per-pixel residual (px, mean over the neighbours, down-weighted by ``e/(e+tex_eps)`` where
-``e`` is the local gradient energy: flow is meaningless without texture) is normalised robustly per frame
-(``tau = max(min_px, median + k*1.4826*MAD)``), mapped softly to [0,1]
-(logistic, centre ``tau``) and smoothed temporally (3-frame box) and spatially.
+``motion`` backend (weight-free). With ``depth``: one-frame DIS flows (<= ``max_width`` px,
+forward and backward) are chained to t±1, t±2, t±4 (a direct k-frame DIS flow fails on
+repetitive texture); a pixel counts for a gap only while every step is forward-backward
+consistent and stays in view. Per gap two residuals, each divided by its per-frame robust scale
+(median + 1.4826·MAD of the valid pixels, floored at 0.25 px resp. 0.1 px per frame of gap):
+``|flow − rigid flow|`` (back-project with depth, move by the relative pose, project) and the
+depth-free Sampson distance to the epipolar geometry (depth inside moving objects carries no
+anchors and is filled from the static surroundings, which can cancel most of the residual —
+the epipolar test does not depend on it). The per-pixel max of the two is averaged over the valid
+gaps, averaged over ``t_win`` (5) frames, then segmented per frame: 5×5 blur, hysteresis
+(``lo`` 1.5 / ``hi`` 4, in robust-scale units), closing (``close_px``), opening, filling of holes
+enclosed by the region (< 25 % of the image: slowly moving interiors such as a waving flag only
+show motion on their border), erosion by ``trim_px`` (DIS smears motion a few pixels into the
+background) and a 5×5 blur. Structuring sizes are in working-resolution px.
+Without depth (per-pixel, previous algorithm): Sampson residual to f±1, down-weighted by
+``e/(e+tex_eps)`` where ``e`` is the local gradient energy, normalised robustly per frame
+(``tau = max(min_px, median + k*1.4826*MAD)``), mapped softly to [0,1] (logistic, centre
+``tau``) and smoothed temporally (3-frame box) and spatially.
 
 ``onnx`` backend: a semantic segmenter (e.g. DeepLabv3 MobileNet, PASCAL 21 classes:
 input [1,257,257,3] NHWC RGB in [-1,1], output [1,257,257,21] scores). Layout is detected
@@ -27,19 +37,6 @@ from . import flow as _flow
 from . import onnx_util
 
 
-def _rigid_residual(flow, depth_s, Ks_f, Ks_g, rel):
-    h, w = flow.shape[:2]
-    xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    pix = np.stack([xs, ys, np.ones_like(xs)], -1).reshape(-1, 3)
-    rays = pix @ np.linalg.inv(Ks_f).T
-    X = rays * depth_s.reshape(-1, 1)
-    Y = X @ rel[:3, :3].T + rel[:3, 3]
-    pr = Y @ Ks_g.T
-    uv = pr[:, :2] / np.maximum(pr[:, 2:], 1e-6)
-    rigid = (uv - pix[:, :2]).reshape(h, w, 2)
-    return np.linalg.norm(flow - rigid, axis=-1)
-
-
 def _sampson(flow, Ks_f, Ks_g, rel):
     h, w = flow.shape[:2]
     R, t = rel[:3, :3], rel[:3, 3]
@@ -54,7 +51,120 @@ def _sampson(flow, Ks_f, Ks_g, rel):
     return np.sqrt(num / np.maximum(den, 1e-12)).reshape(h, w)
 
 
-def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, tex_eps=1e-3, reporter=None):
+def _affine3(A, b, P):
+    """``P [h,w,3] @ A.T + b`` with float32 element-wise ops (no BLAS call per small matmul)."""
+    return np.stack([P[..., 0] * A[i, 0] + P[..., 1] * A[i, 1] + P[..., 2] * A[i, 2] + b[i] for i in range(3)], -1)
+
+
+def _rigid_flow(X, Kg, rel, pix):
+    """Flow [h,w,2] that the relative camera motion ``rel`` induces on camera-space points ``X [h,w,3]``."""
+    pr = _affine3((Kg @ rel[:3, :3]).astype(np.float32), (Kg @ rel[:3, 3]).astype(np.float32), X)
+    return pr[..., :2] / np.maximum(pr[..., 2:], 1e-6) - pix[..., :2]
+
+
+def _sampson_fast(flow, Fm, pix):
+    """Sampson distance [h,w] of (pix, pix + flow) to the fundamental matrix ``Fm``."""
+    x2 = pix.copy(); x2[..., :2] += flow
+    Fm = Fm.astype(np.float32); z = np.zeros(3, np.float32)
+    Fx1 = _affine3(Fm, z, pix); Ftx2 = _affine3(Fm.T.copy(), z, x2)
+    num = np.abs(x2[..., 0] * Fx1[..., 0] + x2[..., 1] * Fx1[..., 1] + Fx1[..., 2])
+    den = Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2
+    return num / np.sqrt(np.maximum(den, 1e-12))
+
+
+def _fill_holes(b, max_frac=0.25):
+    """Fill holes (regions enclosed by ``b``) smaller than ``max_frac`` of the image."""
+    import cv2
+
+    out = b.astype(np.uint8).copy()
+    cs, hier = cv2.findContours(out.copy(), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    if hier is None:
+        return out
+    holes = [c for i, c in enumerate(cs) if hier[0][i][3] >= 0 and cv2.contourArea(c) < max_frac * b.size]
+    if holes:
+        cv2.drawContours(out, holes, -1, 1, -1)
+    return out
+
+
+def _hysteresis(lo, hi):
+    import cv2
+
+    n, lab = cv2.connectedComponents(lo.astype(np.uint8), connectivity=8)
+    keep = np.zeros(n, bool)
+    keep[np.unique(lab[hi & lo])] = True
+    keep[0] = False
+    return keep[lab]
+
+
+RIGID_FLOOR, SAMPSON_FLOOR = 0.25, 0.1
+
+
+def _multigap_residual(gray, K, w2c, depth, S, s, gaps=(1, 2, 4), fb_px=1.0):
+    """Normalised residual (max of rigid-flow and Sampson) over frame gaps ±``gaps`` -> [F,h,w].
+
+    Flow to t±k is the chain of the one-frame DIS flows (one-frame flow is reliable on
+    repetitive texture where a direct k-frame flow is not); a pixel counts for gap k only
+    while every step is forward-backward consistent and stays in the image (occlusions and
+    out-of-view points excluded). Each gap's residual is divided by its per-frame robust scale
+    (median + 1.4826 MAD, at least RIGID_FLOOR / SAMPSON_FLOOR px per frame of gap), the max of the
+    two is taken per pixel and the valid gaps are averaged.
+    """
+    import cv2
+
+    F, h, w = gray.shape
+    fw = [_flow.dis_flow(gray[f], gray[f + 1], "medium") for f in range(F - 1)]
+    bw = [_flow.dis_flow(gray[f + 1], gray[f], "medium") for f in range(F - 1)]
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+
+    def samp(img, d):
+        return cv2.remap(img, xs + d[..., 0], ys + d[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def fb_ok(a, b):
+        e = a + samp(b, a)
+        return (np.hypot(e[..., 0], e[..., 1]) < fb_px + 0.05 * np.hypot(a[..., 0], a[..., 1])).astype(np.float32)
+
+    okf = [fb_ok(fw[f], bw[f]) for f in range(F - 1)]
+    okb = [fb_ok(bw[f], fw[f]) for f in range(F - 1)]
+    Ks = np.einsum("ij,fjk->fik", S, K); Kinv = np.linalg.inv(Ks); c2w = np.linalg.inv(w2c)
+    pix = np.stack([xs + 0.5, ys + 0.5, np.ones_like(xs)], -1)  # continuous coords
+    num = np.zeros((F, h, w), np.float32); den = np.zeros((F, h, w), np.float32)
+    for f in range(F):
+        rays = _affine3(Kinv[f].astype(np.float32), np.zeros(3, np.float32), pix)
+        X = rays * cv2.resize(depth[f].astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)[..., None]
+        for sgn in (1, -1):
+            acc = np.zeros((h, w, 2), np.float32); ok = np.ones((h, w), bool); g = f
+            for k in range(1, max(gaps) + 1):
+                if not 0 <= g + sgn < F:
+                    break
+                fl, o = (fw[g], okf[g]) if sgn > 0 else (bw[g - 1], okb[g - 1])
+                if k > 1:
+                    fl, o = samp(fl, acc), samp(o, acc)
+                acc = acc + fl; ok &= o > 0.99; g += sgn
+                if k not in gaps:
+                    continue
+                rel = w2c[g] @ c2w[f]
+                v = ok & (xs + acc[..., 0] >= 0) & (xs + acc[..., 0] <= w - 1) & (ys + acc[..., 1] >= 0) & (ys + acc[..., 1] <= h - 1)
+                if v.sum() < 0.05 * v.size:
+                    continue
+                z = 0.0
+                t = rel[:3, 3]
+                tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+                for kind, floor in (("rigid", RIGID_FLOOR), ("sampson", SAMPSON_FLOOR)):
+                    if floor is None:
+                        continue
+                    if kind == "rigid":
+                        d = acc - _rigid_flow(X, Ks[g], rel, pix)
+                        r = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+                    else:
+                        r = _sampson_fast(acc, Kinv[g].T @ tx @ rel[:3, :3] @ Kinv[f], pix)
+                    rv = r[v][::4]; med = np.median(rv); mad = 1.4826 * np.median(np.abs(rv - med))
+                    z = np.maximum(z, r / max(med + mad, floor * s * k))
+                num[f] += np.where(v, z, 0); den[f] += v
+    return num / np.maximum(den, 1e-6)
+
+
+def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, tex_eps=1e-3, reporter=None,
+                gaps=(1, 2, 4), lo=1.5, hi=4.0, t_win=5, close_px=15, trim_px=7):
     """Weight-free motion prior (see module docstring) -> float32 [F,H,W]."""
     import cv2
 
@@ -62,6 +172,29 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
     gray, s = _flow.to_gray_small(frames, max_width)
     h, w = gray.shape[1:]
     S = np.diag([w / W, h / H, 1.0])  # K at working resolution (continuous coords scale exactly)
+    out = np.zeros((F, H, W), np.float32)
+    if depth is not None and F >= 2:
+        sc = _multigap_residual(gray, K, w2c, depth, S, s, gaps)
+        if reporter is not None:
+            reporter.progress("dynamic_mask", F // 2, F)
+        r = t_win // 2  # temporal box over t_win frames
+        pad = np.concatenate([sc[:1]] * r + [sc] + [sc[-1:]] * r)
+        sc = np.mean([pad[i:i + F] for i in range(2 * r + 1)], 0)
+        def ell(d):
+            return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (max(3, int(d) | 1),) * 2)
+        for f in range(F):
+            x = cv2.GaussianBlur(sc[f], (5, 5), 0)
+            b = _hysteresis(x > lo, x > hi).astype(np.uint8)
+            b = cv2.morphologyEx(b, cv2.MORPH_CLOSE, ell(close_px))
+            b = cv2.morphologyEx(b, cv2.MORPH_OPEN, ell(5))
+            b = _fill_holes(b)
+            if trim_px:  # DIS smears object motion a few px into the background
+                b = cv2.erode(b, ell(trim_px))
+            p = cv2.GaussianBlur(b.astype(np.float32), (5, 5), 0)
+            out[f] = cv2.resize(p, (W, H), interpolation=cv2.INTER_LINEAR)
+            if reporter is not None:
+                reporter.progress("dynamic_mask", F // 2 + (f + 1) * (F - F // 2) // F, F)
+        return np.clip(out, 0, 1).astype(np.float32)
     res = np.zeros((F, h, w), np.float32)
     for f in range(F):
         nbrs = [g for g in (f - 1, f + 1) if 0 <= g < F]
@@ -69,12 +202,7 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
         for g in nbrs:
             fl = _flow.dis_flow(gray[f], gray[g], "medium")
             rel = w2c[g] @ np.linalg.inv(w2c[f])
-            Kf, Kg = S @ K[f], S @ K[g]
-            if depth is not None:
-                ds = cv2.resize(depth[f].astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
-                acc.append(_rigid_residual(fl, ds, Kf, Kg, rel))
-            else:
-                acc.append(_sampson(fl, Kf, Kg, rel))
+            acc.append(_sampson(fl, S @ K[f], S @ K[g], rel))
         res[f] = np.mean(acc, 0) if acc else 0.0
         # flow is unreliable on texture-less areas (it stays ~0 there): down-weight their residual
         g = gray[f].astype(np.float32) / 255.0
@@ -82,7 +210,6 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
         res[f] *= te / (te + tex_eps)
         if reporter is not None:
             reporter.progress("dynamic_mask", f + 1, F)
-    out = np.zeros((F, H, W), np.float32)
     prob = np.zeros_like(res)
     for f in range(F):
         r = res[f]

@@ -93,6 +93,33 @@ def test_motion_mask_iou(clip, use_depth):
     assert iou.min() >= 0.5, iou
 
 
+def test_motion_mask_with_depth_filled_from_background(clip):
+    """Depth inside the moving square replaced by the surrounding static depth (what the sparse
+    prior does: moving objects carry no anchors) must not hide the square."""
+    frames, depth, mask, K, w2c = clip
+    filled = np.where(mask, np.float32(scene.Z_BG), depth).astype(np.float32)
+    m = dynamic_mask(frames, K, w2c, depth=filled, backend="motion")
+    pred = m > 0.5
+    iou = (pred & mask).sum((1, 2)) / (pred | mask).sum((1, 2))
+    assert iou.min() >= 0.5, iou
+    assert pred[:, ~cv2.dilate(mask.any(0).astype(np.uint8), np.ones((15, 15), np.uint8)).astype(bool)].mean() < 0.02
+
+
+def test_mask_region_helpers():
+    from engine.priors.motion import _fill_holes, _hysteresis
+
+    ring = np.zeros((60, 60), np.uint8)
+    cv2.rectangle(ring, (10, 10), (40, 40), 1, 3)  # closed ring of strong residual
+    filled = _fill_holes(ring)
+    assert filled[25, 25] == 1 and filled[5, 5] == 0 and filled[50, 50] == 0
+    big = np.zeros((60, 60), np.uint8); cv2.rectangle(big, (1, 1), (58, 58), 1, 2)  # encloses > 25 %: not filled
+    assert _fill_holes(big)[30, 30] == 0
+    lo = np.zeros((20, 20), bool); lo[2:6, 2:6] = True; lo[10:15, 10:15] = True
+    hi = np.zeros_like(lo); hi[12, 12] = True
+    keep = _hysteresis(lo, hi)
+    assert keep[10:15, 10:15].all() and not keep[2:6, 2:6].any()
+
+
 def test_handcrafted_tokens(clip):
     frames = clip[0]
     g = extract_tokens(frames, "handcrafted", patch_size=16)
