@@ -18,8 +18,9 @@ def quat_identity(shape=(), dtype=torch.float32, device=None) -> torch.Tensor:
 def quat_normalize(q: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     """``q / |q|`` for ``[..., 4]``; a zero quaternion becomes the identity."""
     n = q.norm(dim=-1, keepdim=True)
-    ident = torch.zeros_like(q)
-    ident[..., 0] = 1
+    # a broadcast [C] constant instead of a zeros_like + fill of q's whole shape
+    ident = q.new_zeros(q.shape[-1])
+    ident[0] = 1
     return torch.where(n > eps, q / n.clamp_min(eps), ident)
 
 

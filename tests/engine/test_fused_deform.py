@@ -1,0 +1,71 @@
+"""The fused Numba deformation (engine/train/fused.py) against the torch reference:
+values and gradients (means, quats, spline keys), antipodal node quaternions included."""
+
+import torch
+
+import engine.train.model as M
+
+
+def _scene(seed=0, g=2000, n=48, k=6):
+    torch.manual_seed(seed)
+    means = torch.randn(g, 3)
+    cent = torch.randn(n, 3)
+    kt = torch.linspace(0, 1, k)
+    pk = cent[:, None] + 0.3 * torch.randn(n, k, 3)
+    rk = torch.randn(n, k, 4)  # random signs: exercises the hemisphere alignment
+    m = M.DynamicScene(means, torch.rand(g, 3), torch.full((g, 3), 0.01), torch.full((g,), 0.3), cent,
+                       torch.full((n,), 0.8), kt, pk, rk)
+    m.rebind()
+    with torch.no_grad():
+        m.quats.copy_(torch.randn(g, 4))
+    return m
+
+
+def _run(m, fused, t=0.37):
+    old = M.FUSED_DEFORM
+    M.FUSED_DEFORM = fused
+    try:
+        m.zero_grad(set_to_none=True)
+        x, q = m.deform(t)
+        gen = torch.Generator().manual_seed(1)
+        gx, gq = torch.randn(x.shape, generator=gen), torch.randn(q.shape, generator=gen)
+        ((x * gx).sum() + (q * gq).sum()).backward()
+        return [x.detach(), q.detach(), m.means.grad.clone(), m.quats.grad.clone(), m.pos_keys.grad.clone(),
+                m.rot_keys.grad.clone()]
+    finally:
+        M.FUSED_DEFORM = old
+
+
+def test_fused_deform_matches_reference():
+    m = _scene()
+    ref, fus = _run(m, False), _run(m, True)
+    for name, r, f in zip(["means_t", "quats_t", "g_means", "g_quats", "g_pos_keys", "g_rot_keys"], ref, fus):
+        tol = 1e-5 * (1.0 + float(r.abs().max()))
+        assert torch.allclose(r, f, atol=tol, rtol=1e-4), (name, float((r - f).abs().max()))
+
+
+def test_fused_deform_is_deterministic():
+    m = _scene(seed=3)
+    a, b = _run(m, True), _run(m, True)
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)
+
+
+def test_fused_deform_points_matches_reference():
+    m = _scene(seed=5)
+    pts = torch.randn(300, 3, requires_grad=True)
+    idx, w = m.bind_idx[:300], m.bind_w[:300]
+    outs = []
+    for fused in (False, True):
+        old = M.FUSED_DEFORM
+        M.FUSED_DEFORM = fused
+        try:
+            m.zero_grad(set_to_none=True)
+            pts.grad = None
+            x = m.deform_points(pts, idx, w, 0.61)
+            (x * torch.linspace(-1, 1, x.numel()).view_as(x)).sum().backward()
+            outs.append((x.detach(), pts.grad.clone(), m.pos_keys.grad.clone(), m.rot_keys.grad.clone()))
+        finally:
+            M.FUSED_DEFORM = old
+    for r, f in zip(*outs):
+        assert torch.allclose(r, f, atol=1e-5 * (1 + float(r.abs().max())), rtol=1e-4)
