@@ -1,33 +1,57 @@
 """Node initialisation bench: MANI vs FPS / uniform voxels / tracklet clustering.
 
-Scene: a PROCEDURAL SYNTHETIC scene built in torch (tools/synth_scene.py is not wired in
-yet): a static floor + back wall and three moving, rotating boxes, sampled densely as
-surface points with ground-truth trajectories, seen by an orbiting camera. Depth and the
-dynamic mask are z-buffered point splats; tokens are per-object prototypes + noise, with
-the moving objects' tokens drifting over time; the foreground prior is the GT mask with
-noise; tracks are projected GT points with z-buffer visibility.
+Default mode: a ``tools/synth_scene.py`` scene (generated fresh with ``--preset``, needs
+bpy; or an existing folder with ``--scene DIR``) goes through the REAL front end:
+``engine.pipeline.open_clip`` + ``prepare`` (frames at the clip's own width, weight-free
+default priors on the train frames, GT cameras) and ``engine.nodes.initialise_nodes`` for
+mani / fps / voxel / tracklet at one node budget (spline trajectories), plus mani with
+``trajectory='static'``. Measured against the scene's ground truth (train ``left_*`` frames):
 
-Per initialiser at one node budget it prints: ``dyn_frac`` (nodes whose nearest GT point
-at their source time is dynamic), ``density_ratio`` (dynamic nodes per dynamic surface
-point ÷ static nodes per static surface point), ``traj_err`` (mean over nodes and frames of
-‖p_i(t) − x_gt(t)‖ for the node's nearest GT point, as a fraction of the scene diagonal;
-also for dynamic nodes only) and the wall time. A last row times MANI on 100k random
-candidates (D=384) → 2k nodes.
+``dyn_frac``
+    Fraction of nodes on a dynamic surface: the node centre projected with the GT camera
+    of its source frame (the frame nearest its source time) lands on a GT-mask pixel.
+    Nodes outside the image count as static.
+``density_ratio``
+    ``(dynamic nodes / dynamic share) / (static nodes / static share)``; the shares are
+    GT-mask pixel fractions over all train frames (image area, not surface area).
+``traj_err`` / ``traj_err_dyn``
+    For every GT surface point (``gt/trajectories.npz``; ``_dyn``: the dynamic ones) and
+    reference frame r ∈ {first, middle, last}: the K=4 nearest nodes at time t_r (by
+    ``p_i(t_r)``) blend their displacement ``p_i(t) − p_i(t_r)`` with RBF weights
+    ``exp(−d²/2ρ_i²)`` (ρ = node radius, normalised), added to the GT position at r, vs the
+    GT trajectory; mean ‖·‖ over points, frames and r, in scene units (``*_abs``) and as a
+    fraction of the scene extent (diagonal of the GT points' bounding box over all frames).
+    ``zero_motion_dyn`` is the error of predicting no motion (the GT motion scale).
+
+``--procedural`` keeps the older torch-only scene (static floor + wall, three moving boxes,
+GT-mask-with-noise prior, tokens from object prototypes); there ``dyn_frac`` uses the
+nearest GT point at the node's source time and ``traj_err`` the node's nearest GT point.
+
+A last row times MANI on 100k random candidates (D=384) → 2k nodes (issue #5: ≤ 3 s on
+2 cores), with the torch thread count and the 1-minute load average.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 import time
+from pathlib import Path
 
+import numpy as np
 import torch
 
-HELP = "node initialisation: MANI vs baselines on a procedural synthetic scene"
+HELP = "node initialisation: MANI vs baselines vs ground truth (tools/synth_scene.py scene or --procedural)"
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--budget", type=int, default=400)
-    parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--scene", metavar="DIR", help="existing tools/synth_scene.py folder (default: generate)")
+    parser.add_argument("--preset", choices=("tiny", "small"), default="small", help="preset to generate")
+    parser.add_argument("--keep", metavar="DIR", help="generate into DIR and keep it (default: a temp folder)")
+    parser.add_argument("--procedural", action="store_true", help="use the procedural torch scene instead")
+    parser.add_argument("--frames", type=int, default=24, help="frames of the procedural scene")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--skip-speed", action="store_true")
 
@@ -124,18 +148,175 @@ def evaluate(nodes, scene) -> dict:
             "traj_err": float(err.mean()) / diag, "traj_err_dyn": float(err[node_dyn].mean()) / diag if n_dyn else float("nan")}
 
 
-def run(args) -> list[dict]:
-    from ..nodes import ManiConfig, NodeInitConfig, initialise_nodes, mani_compress
+#: (initialiser, trajectory init) rows, in print order.
+VARIANTS = (("mani", "spline"), ("mani", "static"), ("fps", "spline"), ("voxel", "spline"), ("tracklet", "spline"))
+
+
+def _load_avg() -> float:
+    try:
+        return round(os.getloadavg()[0], 2)
+    except OSError:
+        return float("nan")
+
+
+def speed_row(seed: int = 0) -> dict:
+    """MANI on 100k random candidates (D=384) → 2k nodes."""
+    from ..nodes import ManiConfig, mani_compress
     from .common import machine_description
+
+    g = torch.Generator().manual_seed(seed)
+    n, d = 100_000, 384
+    pos = torch.rand(n, 3, generator=g) * torch.tensor([4.0, 3.0, 2.0])
+    fg = (pos[:, 0] < 0.8).float()
+    tok = torch.randn(8, d, generator=g)[(pos[:, 1] * 2).long().clamp(0, 7)] + 0.3 * torch.randn(n, d, generator=g)
+    load = _load_avg()
+    t0 = time.perf_counter()
+    res = mani_compress(pos, tok, fg, ManiConfig(budget=2000))
+    wall = time.perf_counter() - t0
+    return {"scene": "speed: 100k random candidates, D=384", "init": "mani", "trajectory": "-",
+            "nodes": int(res.positions.shape[0]), "iterations": res.iterations, "wall_s": round(wall, 3),
+            "threads": torch.get_num_threads(), "load_avg_1m": load, **machine_description()}
+
+
+# ----------------------------------------------------------------------------------------
+# generated scene (tools/synth_scene.py) through the real front end
+
+
+def scene_gt(scene_dir, prep) -> dict:
+    """GT for the prepared train frames: mask / K / w2c per prepared frame, trajectories."""
+    import cv2
+
+    from .priors import load_scene
+
+    _, _, gt = load_scene(scene_dir)
+    order = prep.priors.train_order
+    n = len(order)
+    if len(gt.w2c) != n:
+        raise RuntimeError(f"prepared clip has {n} train frames, GT {len(gt.w2c)}")
+    h, w = prep.frames.shape[1:3]
+    mask = np.stack([cv2.resize(m.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0 for m in gt.mask])
+    info = gt.info
+    traj = np.load(Path(scene_dir) / "gt" / "trajectories.npz", allow_pickle=False)
+    dyn = traj["is_dynamic"].astype(bool)
+    return {"mask": mask, "K": prep.K[order], "w2c": prep.w2c[order], "times": prep.times[order],
+            "points": gt.points.astype(np.float32), "dynamic": dyn, "info": info}
+
+
+def _rbf_deform_error(nodes, points: np.ndarray, times: np.ndarray, k: int = 4) -> np.ndarray:
+    """Mean over frames and reference frames of the node-predicted vs GT trajectory error.
+
+    points : (M, F, 3) GT. Returns (M,) errors in scene units.
+    """
+    from ..geometry.binding import knn_nodes
+    from ..geometry.hermite import hermite_eval
+
+    pts = torch.as_tensor(points).float()
+    f = pts.shape[1]
+    pred_nodes = hermite_eval(nodes.key_times, nodes.pos_keys, nodes.pos_tangents,
+                              torch.as_tensor(times).float())  # [N, F, 3]
+    rho = nodes.radii.float().clamp_min(1e-6)
+    errs = []
+    for r in sorted({0, f // 2, f - 1}):  # reference frames
+        kk = min(k, pred_nodes.shape[0])
+        idx, d2 = knn_nodes(pts[:, r], pred_nodes[:, r], kk)  # [M, kk] node ids per point
+        w = torch.exp(-d2 / (2 * rho[idx] ** 2))
+        w = torch.where(w.sum(1, keepdim=True) > 1e-12, w, torch.ones_like(w))  # far points: plain mean
+        w = w / w.sum(1, keepdim=True)
+        disp = pred_nodes[idx] - pred_nodes[idx][:, :, r:r + 1]  # [M, kk, F, 3]
+        pred = pts[:, r:r + 1] + (w[..., None, None] * disp).sum(1)
+        errs.append((pred - pts).norm(dim=-1).mean(1))
+    return torch.stack(errs).mean(0).numpy()
+
+
+def evaluate_gt(nodes, gt: dict) -> dict:
+    """Node-placement and trajectory metrics of a NodeSet against a generated scene's GT."""
+    centers = nodes.centers.double().numpy()
+    times = gt["times"]
+    frame = np.abs(nodes.source_time.double().numpy()[:, None] - times[None]).argmin(1)
+    K, w2c, mask = gt["K"][frame], gt["w2c"][frame], gt["mask"]
+    xc = np.einsum("nij,nj->ni", w2c[:, :3, :3], centers) + w2c[:, :3, 3]
+    uvw = np.einsum("nij,nj->ni", K, xc)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+    _, h, w = mask.shape
+    inside = (xc[:, 2] > 0) & np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    col = np.clip(np.nan_to_num(u), 0, w - 1).astype(int)
+    row = np.clip(np.nan_to_num(v), 0, h - 1).astype(int)
+    node_dyn = inside & mask[frame, row, col]
+    n = len(centers)
+    n_dyn = int(node_dyn.sum())
+    share = float(mask.mean())
+    density = (n_dyn / share) / max((n - n_dyn) / (1 - share), 1e-12)
+    pts, dyn = gt["points"], gt["dynamic"]
+    err = _rbf_deform_error(nodes, pts, times)
+    ext = float(np.linalg.norm(pts.reshape(-1, 3).max(0) - pts.reshape(-1, 3).min(0)))
+    zero = np.linalg.norm(pts[dyn] - pts[dyn][:, :1], axis=-1).mean() if dyn.any() else float("nan")
+    return {"nodes": n, "dyn_frac": n_dyn / n, "dyn_share_gt": share, "density_ratio": density,
+            "off_image": int((~inside).sum()),
+            "traj_err_dyn": float(err[dyn].mean()) / ext, "traj_err": float(err.mean()) / ext,
+            "traj_err_dyn_abs": float(err[dyn].mean()), "traj_err_abs": float(err.mean()),
+            "zero_motion_dyn": float(zero) / ext, "extent": ext}
+
+
+def run_generated(args) -> list[dict]:
+    from .. import pipeline
+    from ..nodes import ManiConfig, NodeInitConfig, initialise_nodes
+    from ..train.config import TrainConfig
+    from .priors import generate
+
+    tmp = None
+    if args.scene:
+        scene_dir = Path(args.scene)
+        label = scene_dir.name
+    else:
+        if args.keep:
+            out = Path(args.keep)
+        else:
+            tmp = tempfile.TemporaryDirectory(prefix="nodes_bench_")
+            out = Path(tmp.name) / args.preset
+        t0 = time.perf_counter()
+        scene_dir = generate(out, args.preset, None, args.seed)
+        label = f"{args.preset} (generated, seed {args.seed}, {time.perf_counter() - t0:.0f} s)"
+    try:
+        clip = pipeline.open_clip(scene_dir, solve=False)
+        cfg = TrainConfig(width=clip.width, seed=args.seed)
+        t0 = time.perf_counter()
+        prep = pipeline.prepare(clip, cfg)
+        prep_s = time.perf_counter() - t0
+        gt = scene_gt(scene_dir, prep)
+        order = prep.priors.train_order
+        n_train = len(order)
+        pr, tr = prep.priors, prep.priors.tracks
+        inputs = dict(depth=pr.depth[order], K=prep.K[order], w2c=prep.w2c[order], times=prep.times[order],
+                      tokens=pr.tokens.tokens, patch_centers=pr.tokens.patch_centers, fg=pr.dynamic[order],
+                      tracks_xy=tr.xy[:, order], tracks_vis=tr.visible[:, order])
+        num_keys = cfg.num_keys or max(4, min(24, n_train // 4))  # as pipeline.initial_nodes
+        res = f"{prep.frames.shape[2]}x{prep.frames.shape[1]}x{n_train}f"
+        rows = []
+        for method, traj in VARIANTS:
+            icfg = NodeInitConfig(method=method, trajectory=traj, mani=ManiConfig(budget=args.budget, seed=args.seed),
+                                  num_keys=num_keys, num_keyframes=min(12, n_train), seed=args.seed)
+            t0 = time.perf_counter()
+            nodes = initialise_nodes(**inputs, config=icfg)
+            wall = time.perf_counter() - t0
+            rows.append({"scene": label, "res": res, "init": method, "trajectory": traj, **evaluate_gt(nodes, gt),
+                         "wall_s": round(wall, 3), "prepare_s": round(prep_s, 2)})
+        return rows
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+
+
+def run_procedural(args) -> list[dict]:
+    from ..nodes import ManiConfig, NodeInitConfig, initialise_nodes
 
     torch.manual_seed(args.seed)
     scene = make_scene(frames=args.frames, seed=args.seed)
     inputs = {k: scene[k] for k in ("depth", "K", "w2c", "times", "tokens", "patch_centers", "fg",
                                     "tracks_xy", "tracks_vis")}
     rows = []
-    label = "procedural synthetic scene (not tools/synth_scene.py)"
-    for method, traj in (("mani", "spline"), ("mani", "static"), ("fps", "spline"), ("voxel", "spline"),
-                         ("tracklet", "spline")):
+    label = "procedural torch scene"
+    for method, traj in VARIANTS:
         cfg = NodeInitConfig(method=method, trajectory=traj, mani=ManiConfig(budget=args.budget, seed=args.seed),
                              seed=args.seed)
         t0 = time.perf_counter()
@@ -143,16 +324,11 @@ def run(args) -> list[dict]:
         wall = time.perf_counter() - t0
         rows.append({"scene": label, "init": method, "trajectory": traj, **evaluate(nodes, scene),
                      "wall_s": round(wall, 3)})
+    return rows
+
+
+def run(args) -> list[dict]:
+    rows = run_procedural(args) if args.procedural else run_generated(args)
     if not args.skip_speed:
-        g = torch.Generator().manual_seed(args.seed)
-        n, d = 100_000, 384
-        pos = torch.rand(n, 3, generator=g) * torch.tensor([4.0, 3.0, 2.0])
-        fg = (pos[:, 0] < 0.8).float()
-        tok = torch.randn(8, d, generator=g)[(pos[:, 1] * 2).long().clamp(0, 7)] + 0.3 * torch.randn(n, d, generator=g)
-        t0 = time.perf_counter()
-        res = mani_compress(pos, tok, fg, ManiConfig(budget=2000))
-        wall = time.perf_counter() - t0
-        rows.append({"scene": "speed: 100k random candidates, D=384", "init": "mani", "trajectory": "-",
-                     "nodes": int(res.positions.shape[0]), "iterations": res.iterations,
-                     "wall_s": round(wall, 3), "threads": torch.get_num_threads(), **machine_description()})
+        rows.append(speed_row(args.seed))
     return rows
