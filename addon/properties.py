@@ -4,9 +4,12 @@
 from __future__ import annotations
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 SCENE_ATTR = "motion_splats_result"
+PRESET_ITEMS = (("preview", "Preview", "Minutes on a laptop CPU (the default)"),
+                ("standard", "Standard", "More Gaussians and steps"),
+                ("high", "High", "Best quality; slow without a GPU"))
 PREVIEW_ITEMS = (("POINTS", "Points", "Fast point cloud preview (viewport, Eevee, Cycles)"),
                  ("ELLIPSOIDS", "Ellipsoids", "Oriented 3σ ellipsoids with a Gaussian falloff (Cycles)"))
 
@@ -21,6 +24,18 @@ class MOTIONSPLATS_PG_result(bpy.types.PropertyGroup):
                            description="Build the armature that deforms the Gaussians with the node Empties")
     bundle_path: StringProperty(name="Bundle", subtype="DIR_PATH",
                                 description="Result bundle folder last built into this scene")
+    # -- reconstruction (operators/reconstruct_ops.py) --
+    clip_path: StringProperty(name="Clip", subtype="FILE_PATH",
+                              description="Footage to reconstruct: a dataset folder, video, image folder or clip "
+                              "manifest. Empty: export the active Movie Clip and the scene camera")
+    preset: EnumProperty(name="Preset", default="preview", items=PRESET_ITEMS)
+    steps: IntProperty(name="Steps", default=0, min=0, description="Training steps (0: the preset's default)")
+    use_scene_camera: BoolProperty(name="Use Scene Camera", default=True,
+                                   description="Send the scene camera's animation as the footage's cameras "
+                                   "(off: the engine solves the cameras)")
+    last_clip: StringProperty(name="Last Clip", subtype="FILE_PATH", options={"HIDDEN"},
+                              description="Clip the last reconstruction trained on (for Resume)")
+    last_preset: StringProperty(name="Last Preset", options={"HIDDEN"})
 
 
 def register_scene_props():

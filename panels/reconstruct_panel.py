@@ -1,0 +1,44 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""The "Reconstruct" panel: footage / camera import, clip path, preset, Reconstruct / Resume.
+Progress of the running job shows in the main panel's job box."""
+
+from __future__ import annotations
+
+import bpy
+
+from ..addon import properties
+
+
+class MOTIONSPLATS_PT_reconstruct(bpy.types.Panel):
+    bl_label = "Reconstruct"
+    bl_idname = "MOTIONSPLATS_PT_reconstruct"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Motion Splats"
+    bl_order = 1
+
+    def draw(self, context):
+        layout = self.layout
+        col = layout.column(align=True)
+        col.operator("motion_splats.import_footage", icon="FILE_MOVIE")
+        row = col.row(align=True)
+        row.operator("motion_splats.import_tracking_camera", icon="TRACKER")
+        row.operator("motion_splats.import_colmap_camera", icon="CAMERA_DATA")
+        s = properties.settings(context)
+        if s is None:
+            return
+        col = layout.column(align=True)
+        col.prop(s, "clip_path")
+        col.prop(s, "preset")
+        col.prop(s, "use_scene_camera")
+        header, body = layout.panel("MOTIONSPLATS_reconstruct_advanced", default_closed=True)
+        header.label(text="Advanced")
+        if body is not None:
+            body.prop(s, "steps")
+        row = layout.row(align=True)
+        row.scale_y = 1.3
+        row.operator("motion_splats.reconstruct", icon="PLAY")
+        row.operator("motion_splats.resume", icon="FILE_REFRESH")
+
+
+CLASSES = (MOTIONSPLATS_PT_reconstruct,)
