@@ -24,6 +24,8 @@ COMMANDS = (
     "init",
     "train",
     "render",
+    "eval",
+    "report",
     "export",
 )
 
@@ -66,7 +68,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         import os
 
-        os.environ.setdefault("MOTION_SPLATS_THREADS", str(args.threads))
+        os.environ["MOTION_SPLATS_THREADS"] = str(args.threads)
+        import torch
+
+        torch.set_num_threads(args.threads)  # the CPU rasteriser follows torch's count
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     try:
         code = args._module.run(args, reporter)

@@ -1,0 +1,136 @@
+"""Held-out quality of node initialisers x motion models on synthetic vrig scenes.
+
+Examples::
+
+    python -m engine.bench quality                          # small scenes, seeds 0 and 1
+    python -m engine.bench quality --steps 150 --json
+    python -m engine.bench quality data/clip --configs mani+spline,fps+mlp
+
+For each scene (generated with ``tools/synth_scene.py`` when none is given) and each
+``init+motion`` configuration, ``python -m engine train`` runs in a subprocess (so its peak
+RSS is measured on its own, with ``os.wait4``) at the ``preview`` preset (``--steps``
+overrides the step count for quick runs). Configurations of one scene share one priors
+cache, so priors are computed once per scene. The held-out PSNR/SSIM come from the
+training run's final evaluation (the trained model itself); ``psnr_bundle`` re-renders
+the written bundle from disk (``engine eval``), which for ``mlp`` motion is the exported
+spline approximation of the MLP. ``lpips`` is always null here (no bundled LPIPS model).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HELP = "held-out PSNR/SSIM of node init x motion configs (MANI/FPS/voxel x spline/mlp)"
+
+DEFAULT_CONFIGS = "mani+spline,fps+spline,fps+mlp,voxel+spline"
+REPO = Path(__file__).resolve().parents[2]
+
+
+def add_arguments(parser):
+    parser.add_argument("scenes", nargs="*", help="clip folders (default: generate synthetic scenes, seeds 0 and 1)")
+    parser.add_argument("--preset", default="small", choices=("tiny", "small"),
+                        help="synthetic scene preset when generating (default small)")
+    parser.add_argument("--seeds", default="0,1", help="seeds of the generated scenes (default 0,1)")
+    parser.add_argument("--steps", type=int, help="training steps (default: the preview preset's)")
+    parser.add_argument("--configs", default=DEFAULT_CONFIGS, help=f"init+motion list (default {DEFAULT_CONFIGS})")
+    parser.add_argument("--work", help="folder for generated scenes, priors caches and bundles "
+                                       "(default: <tmp>/motion_splats_bench/quality)")
+    parser.add_argument("--threads", type=int, help="CPU threads per training run")
+
+
+def generate_scene(out: Path, preset: str, seed: int) -> Path:
+    """Generate (or reuse) a synthetic scene with tools/synth_scene.py."""
+    if (out / "dataset.json").is_file():
+        return out
+    cmd = [sys.executable, str(REPO / "tools" / "synth_scene.py"), "--out", str(out), "--preset", preset,
+           "--seed", str(seed), "--quiet"]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"synth_scene failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    last = proc.stdout.strip().splitlines()[-1]
+    return Path(json.loads(last)["out"])
+
+
+def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threads=None) -> dict:
+    """Run ``python -m engine train`` in a child; returns its result event plus wall_s, peak_rss_mb."""
+    cmd = [sys.executable, "-m", "engine", "train", str(clip), "--out", str(out), "--init", init, "--motion", motion,
+           "--cache", str(cache), "--overwrite", "--jsonl", "--preset", "preview"]
+    if steps:
+        cmd += ["--steps", str(steps)]
+    if threads:
+        cmd += ["--threads", str(threads)]
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile("w+") as err:  # stderr to a file: no pipe to fill up
+        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True)
+        out_text = proc.stdout.read()  # until EOF (the child exits)
+        proc.stdout.close()
+        _, status, usage = os.wait4(proc.pid, 0)  # this child's own rusage (ru_maxrss in KiB on Linux)
+        err.seek(0)
+        err_text = err.read()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    wall = time.perf_counter() - t0
+    result, error = None, None
+    for line in out_text.splitlines():
+        try:
+            ev = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(ev, dict) and ev.get("event") == "result":
+            result = ev
+        elif isinstance(ev, dict) and ev.get("event") == "error":
+            error = ev
+    if proc.returncode != 0 or result is None:
+        msg = (error or {}).get("message") or err_text[-1500:]
+        raise RuntimeError(f"train {init}+{motion} on {clip} failed ({proc.returncode}): {msg}")
+    rss = usage.ru_maxrss / 1024.0 if sys.platform != "darwin" else usage.ru_maxrss / 2 ** 20
+    return {**result, "wall_s": wall, "peak_rss_mb": rss}
+
+
+def run_one(clip, name: str, init: str, motion: str, work: Path, steps=None, threads=None) -> dict:
+    from ..bundle import read_scene
+    from ..commands.eval import evaluate_bundle
+
+    out = work / "bundles" / f"{name}_{init}_{motion}"
+    res = train_subprocess(clip, out, init, motion, work / "cache" / name, steps, threads)
+    stats = read_scene(out / "scene.json").get("stats", {})
+    ev, ev0 = res.get("eval") or {}, res.get("eval_init") or {}
+    try:  # `engine train` writes eval.json with its report; evaluate only when it did not
+        bundle_eval = json.loads((out / "eval.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        bundle_eval = evaluate_bundle(out, clip, write=True)
+    return {"scene": name, "init": init, "motion": motion,
+            "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": None,
+            "psnr_init": ev0.get("psnr"), "ssim_init": ev0.get("ssim"),
+            "psnr_bundle": bundle_eval["mean"]["psnr"], "masked_psnr": bundle_eval["mean"]["masked_psnr"],
+            "steps": res.get("steps"), "train_s": stats.get("train_seconds"),
+            "its_per_s": res.get("iterations_per_s"), "wall_s": round(res["wall_s"], 1),
+            "gaussians": res.get("gaussians"), "nodes": res.get("nodes"),
+            "peak_rss_mb": round(res["peak_rss_mb"], 1)}
+
+
+def run(args) -> list[dict]:
+    work = Path(args.work) if args.work else Path(tempfile.gettempdir()) / "motion_splats_bench" / "quality"
+    work.mkdir(parents=True, exist_ok=True)
+    configs = [c.strip().split("+") for c in args.configs.split(",") if c.strip()]
+    for c in configs:
+        if len(c) != 2:
+            raise SystemExit(f"bad config {'+'.join(c)!r}: use init+motion, e.g. mani+spline")
+    if args.scenes:
+        scenes = [(Path(s).name, Path(s)) for s in args.scenes]
+    else:
+        seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+        scenes = [(f"{args.preset}_seed{s}", generate_scene(work / f"{args.preset}_seed{s}", args.preset, s))
+                  for s in seeds]
+    rows = []
+    for name, clip in scenes:
+        for init, motion in configs:
+            row = run_one(clip, name, init, motion, work, args.steps, args.threads)
+            print(json.dumps({"progress": row}), file=sys.stderr, flush=True)
+            rows.append(row)
+    return rows

@@ -1,0 +1,35 @@
+"""`python -m engine.bench quality` on a tiny run: 1 scene x 2 configs, a few steps."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+REQUIRED = ("scene", "init", "motion", "psnr", "ssim", "lpips", "psnr_init", "train_s", "its_per_s", "gaussians",
+            "nodes", "peak_rss_mb")
+
+
+def test_bench_quality_rows(tmp_path):
+    pytest.importorskip("bpy")
+    gen = subprocess.run([sys.executable, "tools/synth_scene.py", "--out", str(tmp_path / "clip"), "--preset", "tiny",
+                          "--quiet"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert gen.returncode == 0, gen.stderr[-2000:]
+    r = subprocess.run([sys.executable, "-m", "engine.bench", "quality", str(tmp_path / "clip"), "--steps", "3",
+                        "--configs", "mani+spline,fps+mlp", "--work", str(tmp_path / "work"), "--json"],
+                       cwd=REPO, capture_output=True, text=True, timeout=400)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = [json.loads(l) for l in r.stdout.splitlines() if l.startswith("{")]
+    assert [(x["init"], x["motion"]) for x in rows] == [("mani", "spline"), ("fps", "mlp")]
+    for row in rows:
+        for key in REQUIRED:
+            assert key in row, key
+        assert row["lpips"] is None and row["steps"] == 3
+        assert 5 < row["psnr"] < 60 and row["peak_rss_mb"] > 50 and row["gaussians"] > 0
+    # priors computed once: both configs used the same cache folder
+    assert len(list((tmp_path / "work" / "cache").iterdir())) == 1
