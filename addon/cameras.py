@@ -26,6 +26,7 @@ import numpy as np
 
 from ..engine.errors import InputError
 from ..engine.geometry.blender_camera import blender_camera_from_intrinsics
+from ..engine.io.colmap import colmap_K_dist as _engine_colmap_K_dist
 
 CV_FROM_BLENDER = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -65,23 +66,13 @@ def project(K, w2c, points) -> np.ndarray:
 
 # -- COLMAP -------------------------------------------------------------------------------
 def colmap_K_dist(model: str, params) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(K [3,3], dist [5] (k1,k2,p1,p2,k3) or None)`` of a COLMAP camera (as engine/io/colmap.py)."""
-    p = [float(v) for v in params]
-    dist = None
-    if model == "SIMPLE_PINHOLE":
-        fx = fy = p[0]; cx, cy = p[1], p[2]
-    elif model == "PINHOLE":
-        fx, fy, cx, cy = p[:4]
-    elif model == "SIMPLE_RADIAL":
-        fx = fy = p[0]; cx, cy = p[1], p[2]; dist = np.array([p[3], 0, 0, 0, 0.0])
-    elif model == "RADIAL":
-        fx = fy = p[0]; cx, cy = p[1], p[2]; dist = np.array([p[3], p[4], 0, 0, 0.0])
-    elif model == "OPENCV":
-        fx, fy, cx, cy = p[:4]; dist = np.array([p[4], p[5], p[6], p[7], 0.0])
-    else:
+    """``(K [3,3], dist [5] or None)`` of a COLMAP camera; the engine's mapping, with the
+    add-on's user-facing error for unsupported models."""
+    try:
+        return _engine_colmap_K_dist(model, params)
+    except ValueError:
         raise InputError(f"COLMAP camera model {model} is not supported", None,
-                         "undistort the model first (colmap image_undistorter) or use PINHOLE/OPENCV")
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), dist
+                         "undistort the model first (colmap image_undistorter) or use PINHOLE/OPENCV") from None
 
 
 def find_colmap_model(folder) -> Path:

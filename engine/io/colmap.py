@@ -45,24 +45,33 @@ def is_colmap(path: Path) -> bool:
     return Path(path).is_dir() and find_model(Path(path)) is not None
 
 
+def colmap_K_dist(model: str, params) -> tuple[np.ndarray, np.ndarray | None]:
+    """COLMAP camera ``model`` name + ``params`` -> ``(K [3,3], dist [5] (k1,k2,p1,p2,k3) or None)``.
+
+    Pure numpy (the add-on's COLMAP import in Blender uses it too); unsupported models
+    raise ``ValueError(model)``.
+    """
+    p = np.asarray(params, dtype=np.float64)
+    dist = None
+    if model == "SIMPLE_PINHOLE":
+        fx = fy = p[0]; cx, cy = p[1], p[2]
+    elif model == "PINHOLE":
+        fx, fy, cx, cy = p[:4]
+    elif model == "SIMPLE_RADIAL":
+        fx = fy = p[0]; cx, cy = p[1], p[2]; dist = np.array([p[3], 0, 0, 0, 0.0])
+    elif model == "RADIAL":
+        fx = fy = p[0]; cx, cy = p[1], p[2]; dist = np.array([p[3], p[4], 0, 0, 0.0])
+    elif model == "OPENCV":
+        fx, fy, cx, cy = p[:4]; dist = np.array([p[4], p[5], p[6], p[7], 0.0])
+    else:
+        raise ValueError(model)
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), dist
+
+
 def camera_to_K_dist(cam) -> tuple[np.ndarray, np.ndarray | None]:
     """pycolmap camera → ``(K [3,3], dist [5] or None)``; unsupported models raise ValueError."""
     name = cam.model.name if hasattr(cam.model, "name") else str(cam.model)
-    p = np.asarray(cam.params, dtype=np.float64)
-    dist = None
-    if name == "SIMPLE_PINHOLE":
-        fx = fy = p[0]; cx, cy = p[1], p[2]
-    elif name == "PINHOLE":
-        fx, fy, cx, cy = p[:4]
-    elif name == "SIMPLE_RADIAL":
-        fx = fy = p[0]; cx, cy = p[1], p[2]; dist = np.array([p[3], 0, 0, 0, 0.0])
-    elif name == "RADIAL":
-        fx = fy = p[0]; cx, cy = p[1], p[2]; dist = np.array([p[3], p[4], 0, 0, 0.0])
-    elif name == "OPENCV":
-        fx, fy, cx, cy = p[:4]; dist = np.array([p[4], p[5], p[6], p[7], 0.0])
-    else:
-        raise ValueError(name)
-    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), dist
+    return colmap_K_dist(name, cam.params)
 
 
 def image_w2c(img) -> np.ndarray:
