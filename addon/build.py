@@ -55,6 +55,12 @@ AUX_AXES = 2  # auxiliary vertices per Gaussian in ELLIPSOIDS builds (local x an
 # ----------------------------------------------------------------------------------
 # numpy helpers (no bpy)
 # ----------------------------------------------------------------------------------
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decoding of values in [0, 1]."""
+    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
 def subset_indices(count: int, density: float) -> np.ndarray:
     """Sorted indices of the Gaussians kept at ``density`` (deterministic, seed 0)."""
     density = float(min(max(density, 0.0), 1.0))
@@ -131,7 +137,10 @@ def _set_attr(mesh, name: str, dtype: str, values, prop: str = "value") -> None:
 
 def set_gaussian_attributes(mesh, gaussians, keep, aux: bool) -> None:
     """Point attributes of the kept Gaussians (repeated on their aux vertices)."""
-    colors = np.concatenate([gaussians.colors[keep], np.ones((len(keep), 1))], axis=1).astype(np.float32)
+    # The engine's colours are display-referred sRGB values; Blender shades in linear
+    # light and applies the sRGB transform on output, so store them linearised.
+    colors = np.concatenate([srgb_to_linear(gaussians.colors[keep]), np.ones((len(keep), 1))],
+                            axis=1).astype(np.float32)
     opac = gaussians.opacities[keep].astype(np.float32)
     scales = np.exp(gaussians.log_scales[keep]).astype(np.float32)
     q = gaussians.quats[keep].astype(np.float64)
@@ -243,7 +252,7 @@ def configure_cycles(scene) -> None:
     """Transparent bounces for stacked splats; Standard view transform (DC colour)."""
     cy = getattr(scene, "cycles", None)
     if cy is not None:
-        cy.transparent_max_bounces = max(cy.transparent_max_bounces, 256)
+        cy.transparent_max_bounces = max(cy.transparent_max_bounces, 1024)
         cy.max_bounces = max(cy.max_bounces, 8)
     scene.view_settings.view_transform = "Standard"
 

@@ -119,7 +119,8 @@ def test_build_points(extension, empty_scene, bundle):
     g = bundle.gaussians.count
     col = np.empty(g * 4, np.float32)
     attrs["ms_color"].data.foreach_get("color", col)
-    np.testing.assert_allclose(col.reshape(-1, 4)[:, :3], bundle.gaussians.colors, atol=1e-6)
+    # stored linearised: Blender shades in linear light (sRGB view transform on output)
+    np.testing.assert_allclose(col.reshape(-1, 4)[:, :3], build.srgb_to_linear(bundle.gaussians.colors), atol=1e-6)
     op = np.empty(g, np.float32)
     attrs["ms_opacity"].data.foreach_get("value", op)
     np.testing.assert_allclose(op, bundle.gaussians.opacities, atol=1e-6)
@@ -260,4 +261,5 @@ def test_ellipsoid_alpha_is_gaussian_along_the_ray(extension, empty_scene, tmp_p
     err = np.abs(rgba[..., 3] - want)[~near_cut]
     assert inside.sum() > 100 and err.max() < 0.002, err.max()
     np.testing.assert_allclose(rgba[..., :3][inside] / np.maximum(rgba[..., 3:][inside], 1e-3),
-                               np.broadcast_to(color, (inside.sum(), 3)), atol=0.03)
+                               np.broadcast_to(extension.addon.build.srgb_to_linear(color), (inside.sum(), 3)),
+                               atol=0.03)  # EXR holds linear light
