@@ -203,6 +203,9 @@ def apply_scene_time(scene, scene_desc) -> None:
 def build_camera(collection, scene, scene_desc, name: str = "MotionSplatsCamera"):
     """An animated camera following ``scene.json`` cameras (None when there are none)."""
     cams = scene_desc.get("cameras") or []
+    # the training camera path; held-out cameras (another viewpoint at the same times) are
+    # for evaluation and would fight over the same keyframes
+    cams = [c for c in cams if c.get("split", "train") == "train"] or cams
     if not cams:
         return None
     c0 = cams[0]

@@ -161,10 +161,25 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     full = dataclasses.replace(pr.tracks, xy=xy, visible=vis) if dataclasses.is_dataclass(pr.tracks) else pr.tracks
     priors = _FramePriors(tokens=pr.tokens, tracks=full, depth=depth, dynamic=dynamic, train_order=order,
                           recomputed=list(getattr(pr, "recomputed", [])))
-    start = int(clip.meta.get("frame_start", 1)) if isinstance(clip.meta, dict) else 1
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
-                        frame_numbers=start + idx, fps=float(clip.fps or 24.0),
+                        frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
                         extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""))
+
+
+def frame_numbers(clip, times: np.ndarray) -> np.ndarray:
+    """Scene frame number of each frame, from its time.
+
+    Frames that share a time (a training and a held-out camera of a vrig capture) share
+    a frame number, so Blender's timeline, the node F-curves and the camera path agree.
+    The range is the clip's own (a clip manifest's frame_start..frame_end), else 1..T
+    for T distinct times.
+    """
+    meta = clip.meta if isinstance(clip.meta, dict) else {}
+    if "frame_start" in meta and "frame_end" in meta:
+        fs, fe = float(meta["frame_start"]), float(meta["frame_end"])
+    else:
+        fs, fe = 1.0, float(len(np.unique(np.round(clip.times, 9))))
+    return np.round(fs + np.asarray(times, np.float64) * (fe - fs)).astype(np.int64)
 
 
 @dataclasses.dataclass
