@@ -34,6 +34,7 @@ class PreparedClip:
     train_idx, val_idx : frame indices.
     priors : the object returned by :func:`engine.priors.compute_priors`.
     frame_numbers : (F,) scene frame numbers; fps; extent; source path.
+    clip_index : (F,) index of each frame in the source clip (for evaluation against it).
     """
 
     frames: np.ndarray
@@ -47,6 +48,7 @@ class PreparedClip:
     fps: float
     extent: float
     source: str
+    clip_index: np.ndarray | None = None
 
 
 def load_frames_at_width(clip, width: int, reporter: Reporter | None = None, max_frames: int = 0):
@@ -97,6 +99,7 @@ def training_data(prep: PreparedClip, device="cpu") -> TrainingData:
         tracks_xy=None if tracks is None else f(tracks.xy),
         tracks_vis=None if tracks is None else torch.as_tensor(tracks.visible, dtype=torch.bool, device=device),
         extent=prep.extent, frame_numbers=torch.as_tensor(prep.frame_numbers), fps=prep.fps,
+        clip_index=None if prep.clip_index is None else torch.as_tensor(prep.clip_index),
     ).validate()
 
 
@@ -163,7 +166,8 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
                           recomputed=list(getattr(pr, "recomputed", [])))
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
                         frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
-                        extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""))
+                        extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""),
+                        clip_index=np.asarray(idx, dtype=np.int64))
 
 
 def frame_numbers(clip, times: np.ndarray) -> np.ndarray:
@@ -216,7 +220,8 @@ def bundle_scene(prep: PreparedClip, cfg: TrainConfig, **extra) -> dict:
     val = set(prep.val_idx.tolist())
     h, w = prep.frames.shape[1:3]
     cams = [{"frame": int(prep.frame_numbers[i]), "w2c": prep.w2c[i], "K": prep.K[i], "width": int(w),
-             "height": int(h), "time": float(np.clip(prep.times[i], 0, 1)), "split": "val" if i in val else "train"}
+             "height": int(h), "time": float(np.clip(prep.times[i], 0, 1)), "split": "val" if i in val else "train",
+             "clip_index": int(prep.clip_index[i]) if prep.clip_index is not None else i}
             for i in range(len(prep.times))]
     return B.new_scene(int(prep.frame_numbers.min()), int(prep.frame_numbers.max()), prep.fps, cams,
                        config=cfg.to_dict(), extent=prep.extent, source={"clip": prep.source, "width": int(w)},

@@ -211,7 +211,8 @@ def _frame_image(bundle, cam, clip_path):
 
         clip, _ = _open_clip_for(bundle, clip_path)
         start = int(clip.meta.get("frame_start", 1)) if isinstance(clip.meta, dict) else 1
-        img = clip.load_frame(int(cam["frame"]) - start, downscale=1)
+        i = int(cam["clip_index"]) if "clip_index" in cam else int(cam["frame"]) - start
+        img = clip.load_frame(i, downscale=1)
         return cv2.resize(img, (int(cam["width"]), int(cam["height"])), interpolation=cv2.INTER_AREA)
     except Exception:  # noqa: BLE001 - the overlay falls back to a blank frame
         return None

@@ -185,7 +185,8 @@ def evaluate_bundle(bundle_dir, clip_path=None, lpips_onnx=None, split: str = "v
     images = []
     with torch.no_grad():
         for n, c in enumerate(cams):
-            i = int(c["frame"]) - start
+            # the clip frame this camera saw (frame numbers follow time, so vrig pairs share one)
+            i = int(c["clip_index"]) if "clip_index" in c else int(c["frame"]) - start
             if not 0 <= i < clip.num_frames:
                 raise InputError(f"bundle frame {c['frame']} is not in the clip ({clip.num_frames} frames)", path,
                                  "pass --clip with the clip this bundle was trained on")

@@ -24,6 +24,7 @@ class TrainingData:
     tracks_vis : (P, F) bool, where a track is visible.
     extent : scene extent (radius of the camera/point cloud bounds) in scene units.
     frame_numbers : (F,) Blender/scene frame number of each frame (for the bundle).
+    clip_index : (F,) index of each frame in its source clip (evaluation reloads it).
     """
 
     images: torch.Tensor
@@ -39,6 +40,7 @@ class TrainingData:
     extent: float = 1.0
     frame_numbers: torch.Tensor | None = None
     fps: float = 24.0
+    clip_index: torch.Tensor | None = None
 
     @property
     def height(self) -> int:

@@ -654,7 +654,8 @@ class Trainer:
         frames = d.frame_numbers if d.frame_numbers is not None else torch.arange(d.num_frames)
         cams = [{"frame": int(frames[i]), "w2c": d.w2c[i].cpu().numpy(), "K": d.K[i].cpu().numpy(),
                  "width": d.width, "height": d.height, "time": float(d.times[i]),
-                 "split": "val" if i in set(d.val_idx.tolist()) else "train"} for i in range(d.num_frames)]
+                 "split": "val" if i in set(d.val_idx.tolist()) else "train",
+                 "clip_index": int(d.clip_index[i]) if d.clip_index is not None else i} for i in range(d.num_frames)]
         scene = B.new_scene(int(frames.min()), int(frames.max()), d.fps, cams, config=self.cfg.to_dict(),
                             stats={"steps": self.step, "gaussians": m.num_gaussians, "nodes": m.num_nodes,
                                    "train_seconds": round(self.train_seconds, 2),
