@@ -267,35 +267,23 @@ class EngineProcess:
             except Exception:  # noqa: BLE001 (never let the thread die noisily)
                 return
 
-    def _read_stdout(self) -> None:
-        stream = self._proc.stdout
+    @staticmethod
+    def _capped_lines(stream):
+        """Yield ``(line, cut)`` from ``stream``; a line longer than ``MAX_LINE_CHARS`` is
+        yielded once, truncated, with ``cut=True`` and the rest discarded up to its newline.
+        Closes the stream when it ends or breaks."""
         try:
             while True:
                 line = stream.readline(MAX_LINE_CHARS)
                 if not line:
                     break
-                if not line.endswith("\n") and len(line) >= MAX_LINE_CHARS:
-                    # A huge line: keep its head as text, discard the rest up to the newline.
+                cut = not line.endswith("\n") and len(line) >= MAX_LINE_CHARS
+                if cut:
                     while True:
                         rest = stream.readline(MAX_LINE_CHARS)
                         if not rest or rest.endswith("\n"):
                             break
-                    self.text_lines.append(line[:2000] + f"... [line cut at {MAX_LINE_CHARS} characters]")
-                    continue
-                event = parse_event(line)
-                if event is None:
-                    text = line.rstrip("\r\n")
-                    if text.strip():
-                        self.text_lines.append(text[:2000])
-                    continue
-                kind = event["event"]
-                if kind == "result":
-                    self.result = event
-                elif kind == "error":
-                    self.error_event = event
-                elif kind == "progress":
-                    self.last_progress = event
-                self._events.put(event)
+                yield line, cut
         except (OSError, ValueError):
             pass
         finally:
@@ -304,29 +292,33 @@ class EngineProcess:
             except (OSError, ValueError):
                 pass
 
-    def _read_stderr(self) -> None:
-        stream = self._proc.stderr
-        try:
-            while True:
-                line = stream.readline(MAX_LINE_CHARS)
-                if not line:
-                    break
-                if not line.endswith("\n") and len(line) >= MAX_LINE_CHARS:
-                    while True:
-                        rest = stream.readline(MAX_LINE_CHARS)
-                        if not rest or rest.endswith("\n"):
-                            break
-                    line = line[:2000] + " ..."
+    def _read_stdout(self) -> None:
+        for line, cut in self._capped_lines(self._proc.stdout):
+            if cut:  # a huge line is never parsed as an event; keep its head as text
+                self.text_lines.append(line[:2000] + f"... [line cut at {MAX_LINE_CHARS} characters]")
+                continue
+            event = parse_event(line)
+            if event is None:
                 text = line.rstrip("\r\n")
-                # tqdm redraws with carriage returns: keep the last frame only.
-                self.stderr_tail.append(text.rsplit("\r", 1)[-1][:2000])
-        except (OSError, ValueError):
-            pass
-        finally:
-            try:
-                stream.close()
-            except (OSError, ValueError):
-                pass
+                if text.strip():
+                    self.text_lines.append(text[:2000])
+                continue
+            kind = event["event"]
+            if kind == "result":
+                self.result = event
+            elif kind == "error":
+                self.error_event = event
+            elif kind == "progress":
+                self.last_progress = event
+            self._events.put(event)
+
+    def _read_stderr(self) -> None:
+        for line, cut in self._capped_lines(self._proc.stderr):
+            if cut:
+                line = line[:2000] + " ..."
+            text = line.rstrip("\r\n")
+            # tqdm redraws with carriage returns: keep the last frame only.
+            self.stderr_tail.append(text.rsplit("\r", 1)[-1][:2000])
 
     def _update(self) -> None:
         if self._state != "running":

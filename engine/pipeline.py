@@ -246,14 +246,15 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
         # show nodes before training finishes: the add-on can build them right away
         B.save_bundle(out_dir, bundle_scene(prep, cfg, stage="init"), nodes)
         reporter.progress("nodes", 1, 1, nodes=nodes.count)
-    device = _device(cfg.device)
+    device = pick_device(cfg.device)
     data = training_data(prep, device)
     trainer = Trainer(data, nodes, cfg, out_dir, reporter, resume=resume,
                       scene_extra={"source": {"clip": prep.source, "width": int(prep.frames.shape[2])}})
     return trainer.run()
 
 
-def _device(name: str):
+def pick_device(name: str = "auto") -> torch.device:
+    """``auto`` -> CUDA when available, else CPU; asking for absent CUDA is an InputError."""
     if name == "cuda" and not torch.cuda.is_available():
         raise InputError("CUDA was requested but no CUDA device is available", None, "use --device cpu or auto")
     if name == "auto":

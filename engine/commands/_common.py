@@ -68,10 +68,7 @@ def load_camera_path(path: str | Path) -> list[dict]:
 
 
 def pick_device(name: str = "auto"):
-    import torch
+    """See :func:`engine.pipeline.pick_device` (imported lazily: it needs torch)."""
+    from ..pipeline import pick_device as _pick
 
-    if name == "cuda" and not torch.cuda.is_available():
-        raise InputError("CUDA was requested but no CUDA device is available", None, "use --device cpu")
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    return _pick(name)

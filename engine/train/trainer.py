@@ -20,6 +20,7 @@ from .. import bundle as B
 from ..errors import Cancelled, InputError
 from ..fsutil import atomic_path
 from ..geometry.binding import bind_gaussians
+from ..geometry.camera import project, unproject
 from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
 from ..geometry.quaternion import quat_conj, quat_normalize, quat_to_matrix
 from ..protocol import Reporter
@@ -36,25 +37,6 @@ CHECKPOINT_NAME = "checkpoint.pt"
 # ----------------------------------------------------------------------------------
 # Initialisation
 # ----------------------------------------------------------------------------------
-def backproject_pixels(K: torch.Tensor, w2c: torch.Tensor, uv: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
-    """Pixels ``uv [P, 2]`` (continuous coords) with z-depth ``[P]`` -> world points ``[P, 3]``."""
-    x = (uv[:, 0] - K[0, 2]) / K[0, 0] * depth
-    y = (uv[:, 1] - K[1, 2]) / K[1, 1] * depth
-    cam = torch.stack([x, y, depth], dim=-1)
-    R, t = w2c[:3, :3], w2c[:3, 3]
-    return (cam - t) @ R  # R^T (cam - t)
-
-
-def project_points(K: torch.Tensor, w2c: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """World points ``[P, 3]`` -> pixels ``[P, 2]`` and z-depth ``[P]`` (no distortion)."""
-    cam = x @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
-    zc = z.clamp_min(1e-6)
-    u = K[0, 0] * cam[:, 0] / zc + K[0, 2]
-    v = K[1, 1] * cam[:, 1] / zc + K[1, 2]
-    return torch.stack([u, v], -1), z
-
-
 def to_canonical(model_like, points: torch.Tensor, t: float, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Invert the node deformation at time ``t`` for world points observed at ``t``.
 
@@ -117,7 +99,7 @@ def initial_gaussians(data: TrainingData, cfg: TrainConfig, gen: torch.Generator
         ok = z > 0
         py, px, z = py[ok], px[ok], z[ok]
         uv = torch.stack([px.to(z.dtype) + 0.5, py.to(z.dtype) + 0.5], -1)
-        x = backproject_pixels(data.K[f], data.w2c[f], uv, z)
+        x = unproject(data.K[f], data.w2c[f], uv, z)
         # footprint of ~sqrt(HW / per) pixels at depth z
         footprint = math.sqrt(h * w / per) * z / data.K[f, 0, 0]
         pts.append(x)
@@ -303,7 +285,7 @@ class Trainer:
         wts = torch.empty(len(pid), self.model.bind_k, device=self.device)
         for f in torch.unique(f0).tolist():
             sel = f0 == f
-            x = backproject_pixels(d.K[f], d.w2c[f], uv[sel], z[sel])
+            x = unproject(d.K[f], d.w2c[f], uv[sel], z[sel])
             canon[sel], idx[sel], wts[sel] = to_canonical(self.model, x, float(d.times[f]), self.model.bind_k)
         self.track_ids, self.track_canon, self.track_idx, self.track_w = pid, canon, idx, wts
         self.track_vis = vis
@@ -344,7 +326,7 @@ class Trainer:
                 if len(sel) > 1024:
                     sel = sel[torch.randperm(len(sel), generator=self.gen)[:1024].to(sel.device)]
                 x = m.deform_points(self.track_canon[sel], self.track_idx[sel], self.track_w[sel], t)
-                uv, _ = project_points(d.K[f], d.w2c[f], x)
+                uv, _ = project(d.K[f], d.w2c[f], x)
                 target_uv = d.tracks_xy[self.track_ids[sel], f]
                 terms["track"] = w.track * L.track_loss(uv, target_uv, torch.ones_like(sel, dtype=torch.bool),
                                                         float(d.width))
