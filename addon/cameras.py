@@ -236,7 +236,7 @@ def read_tracking_reconstruction(clip) -> dict:
     out = tracking_cameras(mats, frames, K)
     # reconstruction frames are clip frames; scene frame = clip frame + clip.frame_start - 1
     out["frames"] = [f + int(clip.frame_start) - 1 for f in out["frames"]]
-    out.update(width=w, height=h, dist=dist)
+    out.update(width=w, height=h, dist=dist, average_error=float(recon.average_error))
     return out
 
 

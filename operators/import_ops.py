@@ -118,7 +118,8 @@ class MOTIONSPLATS_OT_import_tracking_camera(bpy.types.Operator):
                                             cams["height"], cams["w2c"], cams["frames"])
         if context.scene.camera and obj.type == "CAMERA":
             _set_background(obj, clip)
-        self.report({"INFO"}, f"Camera '{obj.name}': {len(cams['frames'])} solved frames")
+        self.report({"INFO"}, f"Camera '{obj.name}': {len(cams['frames'])} solved frames, solve error "
+                              f"{cams['average_error']:.3g} px")
         return {"FINISHED"}
 
 

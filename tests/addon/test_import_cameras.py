@@ -2,9 +2,9 @@
 
 Projections of known 3D points with the imported cameras — both the engine K/w2c and
 the animated Blender camera sampled back through addon.exporters — must match the
-source model's projections within 0.5 px. Blender's Python API cannot create
-reconstructed cameras (MovieTrackingReconstructedCameras has no new()), so the
-tracking conversion is tested on arrays plus a real Movie Clip's tracking camera."""
+source model's projections within 0.5 px. Here the tracking conversion is tested on
+arrays plus a real Movie Clip's tracking camera; ``test_tracking_solve.py`` runs a real
+headless camera solve (markers from known 3D points, ``clip.solve_camera``) and imports it."""
 
 from __future__ import annotations
 
