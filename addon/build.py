@@ -297,15 +297,19 @@ def build_bundle_into_scene(context, bundle_dir, collection_name: str | None = N
     t = _time.perf_counter()
     if nodes is not None:
         empties = _build_empties(col, nodes, empty_display, "MS")
+        timings["empties"] = _time.perf_counter() - t
+        t = _time.perf_counter()
         out["key_frames"] = write_bundle_fcurves(empties, nodes, b.scene)
         out["empties"] = empties
-    timings["empties"] = _time.perf_counter() - t
+        timings["fcurves"] = _time.perf_counter() - t
 
     if gs is not None:
         _build_gaussians(col, name, b, out, density, preview, with_rig)
+    t = _time.perf_counter()
     if camera:
         out["camera"] = build_camera(col, scene, b.scene)
     configure_cycles(scene)
+    timings["camera"] = _time.perf_counter() - t
     timings["total"] = _time.perf_counter() - t0
     return out
 
@@ -338,9 +342,11 @@ def _build_gaussians(col, name, b, out, density, preview, with_rig) -> None:
     t = _time.perf_counter()
     set_gaussian_attributes(mesh_obj.data, gs, keep, aux)
     mesh_obj["ms_gaussians"] = len(keep)
+    timings["attributes"] = _time.perf_counter() - t
+    t = _time.perf_counter()
     add_preview_modifier(mesh_obj, preview)
     out["mesh"], out["gaussians"] = mesh_obj, len(keep)
-    timings["attributes"] = _time.perf_counter() - t
+    timings["preview"] = _time.perf_counter() - t
 
 
 def rebuild_preview(context, collection, density: float = 1.0, with_rig: bool = True,
