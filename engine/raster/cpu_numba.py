@@ -298,15 +298,23 @@ def _row_span(a, b, c, thr, dy, mx, lo, hi):
     return x0, x1
 
 
-# Per-tile state lives in ONE flat float32 array, one field per block of NPX entries, and
+# Per-tile state lives in ONE flat float32 array, one field per block of NPAD entries, and
 # the pixel loops index it with unsigned integers: one base pointer means LLVM needs no
 # runtime alias checks, and unsigned indices drop Numba's negative-index wraparound, so the
 # inner loops vectorise. The loops are branch-free (masks and selects) for the same reason.
+#
+# A row span is processed in 8-lane chunks that start at the span's first pixel (not at an
+# 8-aligned column): a span of <= 8 pixels is always one chunk. Lanes past the span fall on
+# the next tile row or on the 8 slack entries that end each field block; they are masked
+# (float compare against the span length, no 64-bit integer masks), and every masked write
+# stores back the value it read, so they change nothing.
 NPX = TILE * TILE
-_T, _R, _G, _B, _D, _LAST, _DONE = (np.uint64(i * NPX) for i in range(7))
-_BR, _BG, _BB, _BD, _BA, _GR, _GG, _GB, _GD, _GA = (np.uint64(i * NPX) for i in range(7, 17))
+NPAD = NPX + 8
+_T, _R, _G, _B, _D, _LAST = (np.uint64(i * NPAD) for i in range(6))  # forward fields
+_BT, _BLAST, _BB, _GR, _GG, _GB, _GD, _GA = (np.uint64(i * NPAD) for i in range(8))  # backward fields
 U0 = np.uint64(0)
 U8 = np.uint64(8)
+LANE = np.arange(8).astype(np.float32)  # lane offsets 0..7 (a frozen constant in the kernels)
 EXP_C = tuple(np.float32(1.0 / math.factorial(i)) for i in range(8))
 SIXTEENTH = np.float32(1.0 / 16.0)
 SIG_MAX = np.float32(8.0)
@@ -347,8 +355,10 @@ def raster_forward(offsets, data, ibox, width, height, tiles_x, bg, out_rgb, out
         txi = tile - tyi * tiles_x
         ox = txi * TILE
         oy = tyi * TILE
-        S = np.zeros(7 * NPX, np.float32)
-        S[:NPX] = F1
+        # A finished pixel keeps its transmittance negated (-T > 0 can never composite
+        # again), so no separate "done" field is loaded and stored per lane.
+        S = np.zeros(6 * NPAD, np.float32)
+        S[:NPAD] = F1
         tw = min(TILE, width - ox)
         th = min(TILE, height - oy)
         alive = np.float32(tw * th)
@@ -365,32 +375,29 @@ def raster_forward(offsets, data, ibox, width, height, tiles_x, bg, out_rgb, out
             bx1 = min(ibox[k, 1], ox + tw)
             narrow = bx1 - bx0 <= 8
             kk = np.float32(k - start + 1)
+            stops = F0
             for py in range(y0, y1):
                 dy = np.float32(py) + HALF - my
-                if narrow:  # the span test costs more than the lanes it would save
+                if narrow:  # one chunk either way: the span test would save nothing
                     x0, x1 = bx0, bx1
                 else:
                     x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
-                    if x1 <= x0:
-                        continue
                 cyy = HALF * c * dy * dy
                 bdy = b * dy
-                stops = F0
-                # Fixed 8-wide, 8-aligned chunks with a span mask: rows of small Gaussians
-                # are only a few pixels long, too short for a vector loop with a remainder.
-                for cb in range((x0 - ox) & ~7, x1 - ox, 8):
-                    base = np.uint64((py - oy) * TILE + cb)
-                    lo = np.uint64(max(x0 - ox - cb, 0))
-                    hi = np.uint64(min(x1 - ox - cb, 8))
-                    dx0 = np.float32(ox + cb) + HALF - mx
+                row = (py - oy) * TILE - ox
+                for c0 in range(x0, x1, 8):
+                    base = np.uint64(row + c0)
+                    n_in = np.float32(x1 - c0)
+                    dx0 = np.float32(c0) + HALF - mx
                     for j in range(U0, U8):
                         p = base + j
-                        dx = dx0 + np.float32(j)
+                        lj = LANE[j]
+                        dx = dx0 + lj
                         sig = HALF * a * dx * dx + cyy + bdy * dx
                         al = min(ALPHA_MAX, op * _exp_neg(sig))
                         tp = S[_T + p]
                         tt = tp * (F1 - al)
-                        live = (j >= lo) & (j < hi) & (sig >= F0) & (al >= ALPHA_MIN) & (S[_DONE + p] == F0)
+                        live = (lj < n_in) & (sig >= F0) & (al >= ALPHA_MIN) & (tp > F0)
                         stop = live & (tt < T_MIN)
                         take = live & (tt >= T_MIN)
                         w = al * tp if take else F0
@@ -398,11 +405,10 @@ def raster_forward(offsets, data, ibox, width, height, tiles_x, bg, out_rgb, out
                         S[_G + p] += w * g_
                         S[_B + p] += w * b_
                         S[_D + p] += w * z_
-                        S[_T + p] = tt if take else tp
+                        S[_T + p] = tt if take else (-tp if stop else tp)
                         S[_LAST + p] = kk if take else S[_LAST + p]
-                        S[_DONE + p] = F1 if stop else S[_DONE + p]
                         stops += F1 if stop else F0
-                alive -= stops
+            alive -= stops
             if alive <= F0:
                 break
         for yy in range(th):
@@ -410,7 +416,7 @@ def raster_forward(offsets, data, ibox, width, height, tiles_x, bg, out_rgb, out
                 p = yy * TILE + xx
                 Y = oy + yy
                 X = ox + xx
-                tp = S[p]
+                tp = abs(S[p])
                 out_rgb[Y, X, 0] = S[_R + p] + tp * bg[0]
                 out_rgb[Y, X, 1] = S[_G + p] + tp * bg[1]
                 out_rgb[Y, X, 2] = S[_B + p] + tp * bg[2]
@@ -428,7 +434,7 @@ def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_
     Returns per-instance gradients ``[I, 10]``: (mx, my, a, b, c, opacity, r, g, b, z).
     ``reassoc`` lets LLVM vectorise the per-Gaussian sums over pixels."""
     ntiles = offsets.shape[0] - 1
-    grads = np.zeros((data.shape[0], 10), np.float32)
+    grads = np.empty((data.shape[0], 10), np.float32)
     for tile in prange(ntiles):
         tyi = tile // tiles_x
         txi = tile - tyi * tiles_x
@@ -437,25 +443,29 @@ def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_
         tw = min(TILE, width - ox)
         th = min(TILE, height - oy)
         # T, last, then B (what lies behind the current Gaussian per unit transmittance
-        # after it, dotted with the upstream gradient; starts as g . background; fields
-        # _BG.._BA are unused), then the upstream gradients.
-        S = np.zeros(17 * NPX, np.float32)
+        # after it, dotted with the upstream gradient; starts as g . background), then the
+        # upstream gradients. Zeros elsewhere keep masked lanes inert (last = 0 masks them).
+        S = np.zeros(8 * NPAD, np.float32)
         maxlast = 0
         for yy in range(th):
             for xx in range(tw):
                 p = yy * TILE + xx
                 Y = oy + yy
                 X = ox + xx
-                S[p] = out_T[Y, X]
-                S[_LAST + p] = np.float32(out_last[Y, X])
+                S[_BT + p] = out_T[Y, X]
+                S[_BLAST + p] = np.float32(out_last[Y, X])
                 maxlast = max(maxlast, out_last[Y, X])
-                S[_BR + p] = g_rgb[Y, X, 0] * bg[0] + g_rgb[Y, X, 1] * bg[1] + g_rgb[Y, X, 2] * bg[2]
+                S[_BB + p] = g_rgb[Y, X, 0] * bg[0] + g_rgb[Y, X, 1] * bg[1] + g_rgb[Y, X, 2] * bg[2]
                 S[_GR + p] = g_rgb[Y, X, 0]
                 S[_GG + p] = g_rgb[Y, X, 1]
                 S[_GB + p] = g_rgb[Y, X, 2]
                 S[_GD + p] = g_depth[Y, X]
                 S[_GA + p] = g_alpha[Y, X]
         start = offsets[tile]
+        # entries past every pixel's last composited one get zero gradient
+        for k in range(start + maxlast, offsets[tile + 1]):
+            for f in range(10):
+                grads[k, f] = F0
         for k in range(start + maxlast - 1, start - 1, -1):
             mx, my = data[k, 0], data[k, 1]
             a, b, c = data[k, 2], data[k, 3], data[k, 4]
@@ -480,30 +490,29 @@ def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_
             s_z = F0
             for py in range(y0, y1):
                 dy = np.float32(py) + HALF - my
-                if narrow:  # the span test costs more than the lanes it would save
+                if narrow:
                     x0, x1 = bx0, bx1
                 else:
                     x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
-                    if x1 <= x0:
-                        continue
                 cyy = HALF * c * dy * dy
                 bdy = b * dy
-                for cb in range((x0 - ox) & ~7, x1 - ox, 8):
-                    base = np.uint64((py - oy) * TILE + cb)
-                    lo = np.uint64(max(x0 - ox - cb, 0))
-                    hi = np.uint64(min(x1 - ox - cb, 8))
-                    dx0 = np.float32(ox + cb) + HALF - mx
+                row = (py - oy) * TILE - ox
+                for c0 in range(x0, x1, 8):
+                    base = np.uint64(row + c0)
+                    n_in = np.float32(x1 - c0)
+                    dx0 = np.float32(c0) + HALF - mx
                     for j in range(U0, U8):
                         p = base + j
-                        dx = dx0 + np.float32(j)
+                        lj = LANE[j]
+                        dx = dx0 + lj
                         sig = HALF * a * dx * dx + cyy + bdy * dx
                         gau = _exp_neg(sig)
                         raw = op * gau
                         al = min(ALPHA_MAX, raw)
-                        live = (j >= lo) & (j < hi) & (kk < S[_LAST + p]) & (sig >= F0) & (al >= ALPHA_MIN)
+                        live = (lj < n_in) & (kk < S[_BLAST + p]) & (sig >= F0) & (al >= ALPHA_MIN)
                         alv = al if live else F0
                         om = F1 - alv
-                        tb = S[_T + p] / om  # transmittance before this Gaussian
+                        tb = S[_BT + p] / om  # transmittance before this Gaussian
                         wgt = alv * tb
                         gr, gg, gb = S[_GR + p], S[_GG + p], S[_GB + p]
                         gd, ga = S[_GD + p], S[_GA + p]
@@ -514,10 +523,10 @@ def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_
                         # Only the upstream-weighted sum of what lies behind matters: B = sum_ch g_ch B_ch
                         # follows the same recurrence as each channel, so one state replaces five.
                         cdot = gr * r_ + gg * g_ + gb * b_ + gd * z_ + ga
-                        bdot = S[_BR + p]
+                        bdot = S[_BB + p]
                         dal = tb * (cdot - bdot)
-                        S[_BR + p] = alv * cdot + om * bdot
-                        S[_T + p] = tb
+                        S[_BB + p] = alv * cdot + om * bdot
+                        S[_BT + p] = tb
                         # the 0.99 clamp has zero gradient
                         dal = dal if (live & (raw <= ALPHA_MAX)) else F0
                         s_o += dal * gau
