@@ -3,11 +3,12 @@
 
 import bpy
 
-from . import engine_ops, import_ops, reconstruct_ops, result_ops
+from . import engine_ops, finetune_ops, import_ops, reconstruct_ops, result_ops
 
 # Classes registered by this package, in dependency order. Modules of this package
 # append their classes here when they are added to the product.
-CLASSES: tuple = (*engine_ops.CLASSES, *result_ops.CLASSES, *reconstruct_ops.CLASSES, *import_ops.CLASSES)
+CLASSES: tuple = (*engine_ops.CLASSES, *result_ops.CLASSES, *reconstruct_ops.CLASSES, *import_ops.CLASSES,
+                  *finetune_ops.CLASSES)
 
 _register, _unregister = bpy.utils.register_classes_factory(CLASSES)
 

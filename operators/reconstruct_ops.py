@@ -173,6 +173,9 @@ class _TrainBase:
         if jobs.running(JOB_KIND):
             cls.poll_message_set("A reconstruction is already running")
             return False
+        if jobs.running("finetune"):
+            cls.poll_message_set("A fine-tune is running: wait for it or cancel it")
+            return False
         return True
 
 

@@ -35,6 +35,10 @@ class MOTIONSPLATS_PT_result(bpy.types.Panel):
             box.label(text=str(coll.get("ms_bundle", "")))
             box.operator("motion_splats.set_preview", icon="FILE_REFRESH")
             box.operator("motion_splats.send_edits", icon="EXPORT")
+            row = box.row(align=True)
+            if s is not None:
+                row.prop(s, "finetune_steps", text="Steps")
+            row.operator("motion_splats.finetune", icon="SHADING_TEXTURE")
             box.operator("motion_splats.export_ply", icon="POINTCLOUD_DATA")
         col = layout.column(align=True)
         col.label(text="Engine inputs")
