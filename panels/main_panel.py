@@ -54,10 +54,10 @@ def draw_job(layout, job) -> None:
             err.label(text=line[:200])
 
 
-class MOTIONSPLATS_PT_main(bpy.types.Panel):
+class _MainPanel:
+    """The job box and Check Engine (drawn in the 3D Viewport and the Movie Clip editor)."""
+
     bl_label = "Motion Splats"
-    bl_idname = "MOTIONSPLATS_PT_main"
-    bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "Motion Splats"
     bl_order = 0
@@ -73,4 +73,14 @@ class MOTIONSPLATS_PT_main(bpy.types.Panel):
         row.operator("motion_splats.check_engine", icon="CHECKMARK")
 
 
-CLASSES = (MOTIONSPLATS_PT_main,)
+class MOTIONSPLATS_PT_main(_MainPanel, bpy.types.Panel):
+    bl_idname = "MOTIONSPLATS_PT_main"
+    bl_space_type = "VIEW_3D"
+
+
+class MOTIONSPLATS_PT_clip_main(_MainPanel, bpy.types.Panel):
+    bl_idname = "MOTIONSPLATS_PT_clip_main"
+    bl_space_type = "CLIP_EDITOR"
+
+
+CLASSES = (MOTIONSPLATS_PT_main, MOTIONSPLATS_PT_clip_main)

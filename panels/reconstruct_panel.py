@@ -9,10 +9,10 @@ import bpy
 from ..addon import properties
 
 
-class MOTIONSPLATS_PT_reconstruct(bpy.types.Panel):
+class _ReconstructPanel:
+    """Drawn in the 3D Viewport and the Movie Clip editor sidebars."""
+
     bl_label = "Reconstruct"
-    bl_idname = "MOTIONSPLATS_PT_reconstruct"
-    bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "Motion Splats"
     bl_order = 1
@@ -41,4 +41,14 @@ class MOTIONSPLATS_PT_reconstruct(bpy.types.Panel):
         row.operator("motion_splats.resume", icon="FILE_REFRESH")
 
 
-CLASSES = (MOTIONSPLATS_PT_reconstruct,)
+class MOTIONSPLATS_PT_reconstruct(_ReconstructPanel, bpy.types.Panel):
+    bl_idname = "MOTIONSPLATS_PT_reconstruct"
+    bl_space_type = "VIEW_3D"
+
+
+class MOTIONSPLATS_PT_clip_reconstruct(_ReconstructPanel, bpy.types.Panel):
+    bl_idname = "MOTIONSPLATS_PT_clip_reconstruct"
+    bl_space_type = "CLIP_EDITOR"
+
+
+CLASSES = (MOTIONSPLATS_PT_reconstruct, MOTIONSPLATS_PT_clip_reconstruct)
