@@ -18,7 +18,6 @@ else is touched.
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import shutil
 import subprocess
@@ -49,62 +48,15 @@ def run_engine(args: list[str], jsonl: bool = False) -> dict | None:
     return events[-1]
 
 
-def import_extension():
-    """The repo imported as the add-on package ``motion_splats`` (as Blender would)."""
-    import tempfile
-
-    root = Path(tempfile.mkdtemp(prefix="ms_ext_"))
-    (root / "motion_splats").symlink_to(REPO, target_is_directory=True)
-    sys.path.insert(0, str(root))
-    return importlib.import_module("motion_splats")
-
-
-def build_blend(bundle_dir: Path, blend_path: Path, clip_dir: Path, render_frames: list[int], out: Path,
-                samples: int = 8) -> dict:
-    """Build the scene through the add-on code, save the .blend, render with Cycles."""
-    import bpy
-
-    ext = import_extension()
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    ext.register()
-    try:
-        info = ext.addon.build.build_bundle_into_scene(bpy.context, str(bundle_dir), preview="ELLIPSOIDS")
-        scene = bpy.context.scene
-        scene.render.engine = "CYCLES"
-        scene.cycles.samples = samples
-        scene.cycles.use_denoising = False
-        scene.cycles.device = "CPU"
-        tmp_blend = blend_path.with_suffix(".tmp.blend")
-        bpy.ops.wm.save_as_mainfile(filepath=str(tmp_blend), copy=True)
-        tmp_blend.replace(blend_path)
-        renders = []
-        for f in render_frames:
-            scene.frame_set(f)
-            target = out / "cycles" / f"frame_{f:05d}.png"
-            target.parent.mkdir(parents=True, exist_ok=True)
-            scene.render.filepath = str(target)
-            bpy.ops.render.render(write_still=True)
-            renders.append(str(target))
-    finally:
-        ext.unregister()
-    return {"build": info, "cycles": renders}
-
-
 def compare(engine_dir: Path, cycles: list[str]) -> list[dict]:
     """PSNR between the Cycles render and the engine's own render of the same frame."""
-    import cv2
-    import numpy as np
+    from engine.bench.cycles import psnr_files
 
     rows = []
     for c in cycles:
-        e = engine_dir / Path(c).name
-        a, b = cv2.imread(c), cv2.imread(str(e))
-        if a is None or b is None:
-            continue
-        if a.shape != b.shape:
-            a = cv2.resize(a, (b.shape[1], b.shape[0]), interpolation=cv2.INTER_AREA)
-        mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-        rows.append({"frame": Path(c).stem, "psnr_cycles_vs_engine": 10 * np.log10(255.0 ** 2 / max(mse, 1e-12))})
+        psnr = psnr_files(c, engine_dir / Path(c).name)
+        if psnr is not None:
+            rows.append({"frame": Path(c).stem, "psnr_cycles_vs_engine": psnr})
     return rows
 
 
@@ -170,7 +122,9 @@ def main(argv=None) -> int:
 
     _say("3/4  Blender: Empties + F-curves, rig, Gaussian preview -> demo.blend; Cycles renders")
     blend = out / "demo.blend"
-    blender = build_blend(bundle, blend, args.clip, frames, out, args.cycles_samples)
+    from tools.bpy_scene import render_cycles  # the bpy half, shared with `engine.bench cycles`
+
+    blender = render_cycles(bundle, frames, out / "cycles", args.cycles_samples, blend_path=blend)
     comparison = compare(engine_dir, blender["cycles"])
 
     _say("4/4  report")
