@@ -1,7 +1,11 @@
 """Long 2D point tracks by chained dense optical flow.
 
 ``flow`` backend (weight-free): frames are converted to grey and downscaled to at most
-``max_width`` px; DIS flow is computed forward (f->f+1) and backward (f+1->f). Each live
+``max_width`` px, or, when narrower than ``min_width``, upscaled by the smallest integer
+factor that reaches it (DIS matches 8-px patches at its finest scale, which straddle the
+boundary of a small moving object in a 240-px frame and drag its points along with the
+background; at 2× the median track error on the moving objects of the small synthetic
+scene drops from 4.3 to 1.5 px); DIS flow is computed forward (f->f+1) and backward (f+1->f). Each live
 point is advanced by the bilinearly sampled forward flow; it is dropped (and stays
 invisible for the rest of the clip) when the forward-backward error
 ``|fwd(p) + bwd(p + fwd(p))|`` exceeds ``fb_thresh + fb_rel*|fwd|`` (occlusion or bad
@@ -54,13 +58,25 @@ def _seed(occupied_xy, h, w, cell, tex, margin=2.0):
     return xy
 
 
+def _working_gray(frames, max_width, min_width):
+    """Grey frames at the flow working width and their scale (working px per frame px)."""
+    import cv2
+
+    gray, s = _flow.to_gray_small(frames, max_width)
+    up = int(np.ceil(min_width / gray.shape[2])) if min_width and gray.shape[2] < min_width else 1
+    if up > 1:
+        gray = np.stack([cv2.resize(g, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC) for g in gray])
+        s = s * up
+    return gray, s
+
+
 def flow_tracks(frames, num_points=2000, max_width=480, fb_thresh=1.0, fb_rel=0.05, preset="medium",
-                reporter=None):
+                reporter=None, min_width=400):
     """Chained-DIS tracks (see module docstring). Returns :class:`Tracks`."""
     import cv2
 
     F, H, W, _ = frames.shape
-    gray, s = _flow.to_gray_small(frames, max_width)
+    gray, s = _working_gray(frames, max_width, min_width)
     h, w = gray.shape[1:]
     cell = max(2.0, float(np.sqrt(h * w / max(int(num_points), 1))))
 
@@ -138,7 +154,7 @@ def onnx_tracks(frames, model_path, num_points=2000):
 
 
 def track_points(frames, num_points=2000, backend="flow", model_path=None, max_width=480, fb_thresh=1.0,
-                 fb_rel=0.05, preset="medium", reporter=None):
+                 fb_rel=0.05, preset="medium", reporter=None, min_width=400):
     """Long 2D tracks over the whole clip.
 
     Parameters
@@ -146,7 +162,8 @@ def track_points(frames, num_points=2000, backend="flow", model_path=None, max_w
     frames : uint8 [F,H,W,3]
     num_points : target number of simultaneously tracked points (grid density)
     backend : 'flow' | 'onnx'
-    max_width : flow working width (px)
+    max_width : flow working width (px); wider frames are downscaled
+    min_width : narrower frames are upscaled by an integer factor to at least this width
     fb_thresh, fb_rel : forward-backward threshold in working px, absolute + relative to |flow|
 
     Returns
@@ -157,7 +174,7 @@ def track_points(frames, num_points=2000, backend="flow", model_path=None, max_w
     if frames.ndim != 4 or frames.dtype != np.uint8:
         raise InputError(f"frames must be uint8 [F,H,W,3], got {frames.dtype} {frames.shape}.")
     if backend == "flow":
-        return flow_tracks(frames, num_points, max_width, fb_thresh, fb_rel, preset, reporter)
+        return flow_tracks(frames, num_points, max_width, fb_thresh, fb_rel, preset, reporter, min_width)
     if backend == "onnx":
         return onnx_tracks(frames, model_path, num_points)
     raise InputError(f"unknown tracks backend {backend!r}.", fix="Use 'flow' or 'onnx'.")
