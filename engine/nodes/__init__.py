@@ -15,10 +15,10 @@ from .candidates import Candidates, build_candidates, choose_keyframes
 from .graph import node_graph, node_radii
 from .mani import ManiConfig, ManiResult, mani_compress
 from .nodeset import NodeSet
-from .trajectory import fit_node_trajectories, lift_tracks
+from .trajectory import clean_tracks3d, fit_node_trajectories, lift_tracks
 
 __all__ = ["NodeInitConfig", "ManiConfig", "ManiResult", "assemble_nodeset", "NodeSet", "Candidates", "initialise_nodes", "build_candidates",
-           "choose_keyframes", "mani_compress", "node_graph", "node_radii", "lift_tracks",
+           "choose_keyframes", "mani_compress", "node_graph", "node_radii", "lift_tracks", "clean_tracks3d",
            "fit_node_trajectories", "farthest_point_sampling", "uniform_voxel_centres", "tracklet_clusters",
            "METHODS"]
 
@@ -43,11 +43,17 @@ class NodeInitConfig:
     radius_factor: float = 1.0
     trajectory: str = "spline"
     vis_threshold: float = 0.5
+    clean_tracks: bool = True      #: split / drop / freeze / filter lifted tracks (``clean_tracks3d``)
+    jump_tol: float = 0.1          #: log-depth step that splits a track
+    min_track_len: int = 4         #: shorter track pieces are dropped
+    depth_window: int = 5          #: median filter (frames) on moving tracks' depth
+    static_fg: float = 0.5         #: tracks with a lower median dynamic prior are frozen
     k_tracks: int = 8
     support_radius: float = 2.0    #: tracks within this many node radii support a node
     smoothness: float = 1e-2       #: velocity penalty relative to the mean support
     irls_iters: int = 3
     fallback: str = "graph"        #: "graph" or "static" for nodes without tracks
+    max_residual_ratio: float | None = 1.0  #: fall back when fit residual > this × explained motion (None: off)
     seed: int = 0
 
 
@@ -77,6 +83,9 @@ def initialise_nodes(depth, K, w2c, times, tokens, patch_centers, fg, tracks_xy,
                             torch.as_tensor(patch_centers).float(), torch.as_tensor(fg).float(), keyframes)
     tracks3d = lift_tracks(torch.as_tensor(tracks_xy).float(), torch.as_tensor(tracks_vis), depth, K, w2c,
                            config.vis_threshold)
+    if config.clean_tracks:
+        tracks3d, _ = clean_tracks3d(tracks3d, torch.as_tensor(tracks_xy).float(), K, w2c, torch.as_tensor(fg).float(),
+                                     config.jump_tol, config.min_track_len, config.depth_window, config.static_fg)
     budget = config.mani.budget
     if config.method == "mani":
         res = mani_compress(cand.positions, cand.tokens, cand.fg, config.mani, time=cand.time)
@@ -111,7 +120,7 @@ def assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config: NodeInit
         pos_keys, pos_tan, support = fit_node_trajectories(
             centers, _snap_frame(src_time, times), radii, tracks3d, times, key_times, graph_idx,
             config.k_tracks, config.support_radius, config.smoothness, None, config.irls_iters,
-            config.fallback)
+            config.fallback, max_residual_ratio=config.max_residual_ratio)
     elif config.trajectory == "static":
         pos_keys = centers.unsqueeze(1).expand(-1, key_times.shape[0], -1).clone()
         pos_tan = torch.zeros_like(pos_keys)

@@ -52,11 +52,113 @@ def lift_tracks(tracks_xy: torch.Tensor, tracks_vis: torch.Tensor, depth: torch.
     return torch.where(ok.unsqueeze(-1), x, torch.full_like(x, float("nan")))
 
 
+
+def _running_nanmedian(x: torch.Tensor, window: int) -> torch.Tensor:
+    """Centred running median of ``x [P, F]`` along F (NaN = missing, kept NaN).
+
+    The window shrinks symmetrically near the ends of a track and next to gaps (the
+    largest half-width ≤ ``window // 2`` with every sample present), so a steady trend is
+    passed unchanged everywhere, while an isolated spike is removed wherever the window
+    has at least 3 samples.
+    """
+    out = x.clone()
+    fin = torch.isfinite(x)
+    for h in range(1, window // 2 + 1):  # loop over half-widths, not tracks
+        pad = torch.full((x.shape[0], h), float("nan"), dtype=x.dtype)
+        win = torch.cat([pad, x, pad], 1).unfold(1, 2 * h + 1, 1)  # [P, F, 2h + 1]
+        full = torch.isfinite(win).all(-1) & fin
+        out = torch.where(full, win.median(-1).values, out)
+    return out
+
+
+def clean_tracks3d(tracks3d: torch.Tensor, tracks_xy: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
+                   fg: torch.Tensor | None = None, jump_tol: float = 0.1, min_len: int = 4,
+                   depth_window: int = 5, static_fg: float = 0.5):
+    """Make lifted tracks fit for the spline fit (every step vectorised over tracks).
+
+    1. **Split at depth jumps.** Where a track's camera depth changes by more than
+       ``jump_tol`` in log depth (~10 %) from its previous sample, the 2D track crossed a
+       depth discontinuity (it slid onto an occluder / the background, or the depth map
+       switched surface); the rest becomes a separate track, so a node anchored before the
+       jump never sees the other surface. Real motion of 10 % of the depth in one frame
+       (≈ 2.4 depths/s at 24 fps) is far beyond a typical clip.
+    2. **Drop short pieces** (fewer than ``min_len`` samples): they carry no reliable
+       motion and are mostly fragments between jumps.
+    3. **Static pieces are static.** A piece whose median dynamic prior ``fg`` (sampled at
+       its pixels) is below ``static_fg`` is a static surface: its samples are replaced by
+       their median world position, so depth noise there cannot become motion. (0.5 is the
+       threshold the depth prior uses to exclude dynamic pixels from its anchors.)
+    4. **Median-filter the depth of moving pieces** over ``depth_window`` frames (log
+       depth, then re-lifted along the same rays): the weight-free depth of moving objects is
+       interpolated from the static surroundings and flickers frame to frame; the filter
+       removes single-frame spikes without smearing the 2D motion.
+
+    Parameters
+    ----------
+    tracks3d : (P, F, 3) world, NaN = missing (from :func:`lift_tracks`); tracks_xy : (P, F, 2)
+    pixels; K : (F, 3, 3); w2c : (F, 4, 4); fg : (F, H, W) dynamic prior or None (no step 3).
+
+    Returns
+    -------
+    (P', F, 3) cleaned tracks and (P',) index of each one's source track.
+    """
+    p, f, _ = tracks3d.shape
+    dev = tracks3d.device
+    if p == 0:
+        return tracks3d, torch.zeros(0, dtype=torch.long, device=dev)
+    valid = torch.isfinite(tracks3d).all(-1)
+    R, t = w2c[:, :3, :3].float(), w2c[:, :3, 3].float()
+    cam = torch.einsum("fij,pfj->pfi", R, torch.nan_to_num(tracks3d)) + t
+    logz = torch.where(valid & (cam[..., 2] > 0), cam[..., 2].clamp_min(1e-9).log(), torch.full_like(cam[..., 2], float("nan")))
+    valid = torch.isfinite(logz)
+    fr = torch.arange(f, device=dev).expand(p, f)
+    last = torch.where(valid, fr, torch.full_like(fr, -1)).cummax(1).values
+    prev = torch.cat([torch.full((p, 1), -1, dtype=torch.long, device=dev), last[:, :-1]], 1)
+    prev_logz = logz.gather(1, prev.clamp_min(0))
+    jump = valid & (prev >= 0) & ((logz - prev_logz).abs() > jump_tol)
+    seg = jump.long().cumsum(1)
+    key = torch.arange(p, device=dev).unsqueeze(1) * (f + 1) + seg
+    uniq, inv = torch.unique(key[valid], return_inverse=True)
+    count = torch.bincount(inv, minlength=uniq.shape[0])
+    keep = count >= min_len
+    new_id = torch.cumsum(keep.long(), 0) - 1
+    n_new = int(keep.sum())
+    src = uniq[keep] // (f + 1)
+    pi, fi = torch.nonzero(valid, as_tuple=True)
+    sk = keep[inv]
+    pi, fi, ni = pi[sk], fi[sk], new_id[inv][sk]
+    lz = torch.full((n_new, f), float("nan"), device=dev)
+    lz[ni, fi] = logz[pi, fi]
+    xy = tracks_xy.float()[src]  # [P', F, 2]
+    out = torch.full((n_new, f, 3), float("nan"), device=dev)
+    out[ni, fi] = tracks3d[pi, fi].float()
+    if n_new == 0:
+        return out, src
+    static = torch.zeros(n_new, dtype=torch.bool, device=dev)
+    if fg is not None:
+        h, w = fg.shape[1:]
+        col = xy[..., 0].floor().long().clamp(0, w - 1)
+        row = xy[..., 1].floor().long().clamp(0, h - 1)
+        m = fg.float()[torch.arange(f, device=dev).expand(n_new, f), row, col]
+        m = torch.where(torch.isfinite(lz), m, torch.full_like(m, float("nan")))
+        static = m.nanmedian(1).values < static_fg
+    zs = _running_nanmedian(lz, depth_window).exp()
+    moved = unproject(K.float().unsqueeze(0).expand(n_new, -1, -1, -1), w2c.float().unsqueeze(0).expand(n_new, -1, -1, -1),
+                      xy, torch.nan_to_num(zs, nan=1.0))
+    ok = torch.isfinite(lz).unsqueeze(-1)
+    moved = torch.where(ok, moved, torch.full_like(moved, float("nan")))
+    still = out.nanmedian(1).values.unsqueeze(1).expand(-1, f, -1)
+    still = torch.where(ok, still, torch.full_like(still, float("nan")))
+    return torch.where(static[:, None, None], still, moved), src
+
+
+
 def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, radii: torch.Tensor,
                           tracks3d: torch.Tensor, times: torch.Tensor, key_times: torch.Tensor,
                           graph_idx: torch.Tensor | None = None, k_tracks: int = 8,
                           support_radius: float = 2.0, smoothness: float = 1e-2, huber: float | None = None,
-                          irls_iters: int = 3, fallback: str = "graph", fallback_rounds: int = 10):
+                          irls_iters: int = 3, fallback: str = "graph", fallback_rounds: int = 10,
+                          max_residual_ratio: float | None = 1.0):
     """Least-squares Hermite position keys per node from nearby lifted tracks.
 
     Each node takes its ``k_tracks`` nearest tracks at its source frame within
@@ -115,7 +217,15 @@ def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, rad
         pred = hermite_eval(key_times, keys, catmull_rom_tangents(key_times, keys), times.float())  # [N, F, 3]
         res = (torch.nan_to_num(s, nan=0.0) - pred.repeat_interleave(kk, dim=1)).norm(dim=-1)
         robust = torch.where(res <= thr, torch.ones_like(res), thr / res.clamp_min(1e-12))
-    disp_keys = torch.where((support > 0)[:, None, None], keys, torch.zeros_like(keys))
+    supported = support > 0
+    if max_residual_ratio is not None:
+        # a fit whose robust residual exceeds the motion it explains is noise, not motion
+        wr = sw * robust
+        den = wr.sum(1).clamp_min(1e-12)
+        resid = ((wr * res ** 2).sum(1) / den).sqrt()
+        mot = ((wr * pred.repeat_interleave(kk, dim=1).norm(dim=-1) ** 2).sum(1) / den).sqrt()
+        supported &= resid <= max_residual_ratio * mot
+    disp_keys = torch.where(supported[:, None, None], keys, torch.zeros_like(keys))
     return _finish(centers, disp_keys, support, key_times, graph_idx, fallback, fallback_rounds)
 
 

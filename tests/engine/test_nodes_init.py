@@ -126,3 +126,81 @@ def test_initialise_nodes_end_to_end_on_bench_scene():
         results[(method, traj)] = evaluate(ns, scene)
     assert results[("mani", "spline")]["density_ratio"] > 2 * results[("fps", "spline")]["density_ratio"]
     assert results[("mani", "spline")]["traj_err"] < 0.7 * results[("mani", "static")]["traj_err"]
+
+
+def _moving_track_scene(n_tracks=30, frames=24, seed=0):
+    """Tracks on a patch that translates in x at depth ~5 in front of a camera rig."""
+    K = torch.tensor([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]]).expand(frames, 3, 3).clone()
+    w2c = torch.stack([look_at(torch.tensor([0.02 * f, 0.0, -5.0], dtype=torch.float64),
+                               torch.tensor([0.0, 0.0, 0.0], dtype=torch.float64)) for f in range(frames)]).float()
+    times = torch.linspace(0, 1, frames)
+    g = torch.Generator().manual_seed(seed)
+    anchors = (torch.rand(n_tracks, 3, generator=g) - 0.5) * 0.2
+    disp = torch.stack([0.6 * times, 0.1 * torch.sin(6 * times), torch.zeros_like(times)], 1)
+    pts = anchors.unsqueeze(1) + disp.unsqueeze(0)  # [P, F, 3]
+    uv, _ = project(K.unsqueeze(0), w2c.unsqueeze(0), pts)
+    return K, w2c, times, pts, uv, disp
+
+
+def test_clean_tracks3d_splits_depth_jumps_freezes_static_and_removes_spikes():
+    from engine.nodes import clean_tracks3d
+
+    K, w2c, times, pts, uv, _ = _moving_track_scene(n_tracks=4, frames=20)
+    f = pts.shape[1]
+    raw = pts.clone()
+    cam_c = -torch.einsum("fji,fj->fi", w2c[:, :3, :3], w2c[:, :3, 3])  # camera centres [F, 3]
+    # track 0: slides onto the background at frame 12 (lifted point jumps 60 % further along its ray)
+    raw[0, 12:] = cam_c[12:] + 1.6 * (raw[0, 12:] - cam_c[12:])
+    # track 1: a single-frame depth flicker of 6 % at frame 7 (below the jump threshold)
+    raw[1, 7] = cam_c[7] + 1.06 * (raw[1, 7] - cam_c[7])
+    # track 2: only 3 samples -> dropped
+    raw[2, 3:] = float("nan")
+    fg = torch.ones(f, 48, 64)
+    out, src = clean_tracks3d(raw, uv, K, w2c, fg)
+    assert src.tolist() == [0, 0, 1, 3]  # track 0 split in two, track 2 dropped
+    first, second = out[0], out[1]
+    assert torch.isfinite(first[:12]).all() and torch.isnan(first[12:]).all()
+    assert torch.isnan(second[:12]).all() and torch.isfinite(second[12:]).all()
+    assert torch.allclose(out[2], pts[1], atol=1e-3)  # the spike is gone, the motion is kept
+    assert torch.allclose(out[3], pts[3], atol=1e-3)  # a clean moving track passes unchanged
+    # a static prior freezes tracks: depth flicker there is noise, not motion
+    noisy = pts.clone()
+    noisy[:, 1::2] = cam_c[1::2] + 1.05 * (noisy[:, 1::2] - cam_c[1::2])
+    frozen, _ = clean_tracks3d(noisy, uv, K, w2c, torch.zeros(f, 48, 64))
+    assert (frozen - frozen[:, :1]).abs().max() < 1e-6
+
+
+def test_spline_fit_keeps_true_motion_with_sliding_tracks_and_falls_back_on_garbage():
+    from engine.nodes import clean_tracks3d
+
+    K, w2c, times, pts, uv, disp = _moving_track_scene(n_tracks=30, frames=24)
+    cam_c = -torch.einsum("fji,fj->fi", w2c[:, :3, :3], w2c[:, :3, 3])
+    raw = pts.clone()
+    # 8 of 30 tracks slide onto a far background at frames 6..20 and stay there
+    for i, start in zip(range(0, 30, 4), range(6, 24, 2)):
+        bg = cam_c[start] + 1.8 * (pts[i, start] - cam_c[start])
+        raw[i, start:] = bg
+    fg = torch.ones(24, 48, 64)
+    clean, _ = clean_tracks3d(raw, uv, K, w2c, fg)
+    key_times = torch.linspace(0, 1, 6)
+    centers = torch.tensor([[0.0, 0.0, 0.0], [30.0, 30.0, 30.0]])
+    radii = torch.tensor([0.1, 0.1])
+    src = torch.zeros(2, dtype=torch.long)
+    errs = []
+    for tracks in (clean, raw):
+        keys, tans, support = fit_node_trajectories(centers, src, radii, tracks, times, key_times, None,
+                                                    k_tracks=8, smoothness=1e-4, fallback="static")
+        errs.append((hermite_eval(key_times, keys, tans, times)[0] - (centers[0] + disp)).norm(dim=-1).max())
+    assert errs[0] < 0.03, errs  # cleaned tracks: the node follows the patch
+    assert errs[1] > 2 * errs[0], errs  # the sliding tracks would have dragged it
+    # garbage: tracks around node 1 whose displacements are independent random walks
+    g = torch.Generator().manual_seed(1)
+    junk = centers[1] + 0.02 * torch.randn(12, 1, 3, generator=g) + 0.3 * torch.randn(12, 24, 3, generator=g).cumsum(1) * (
+        torch.arange(24) > 0).float()[None, :, None]
+    keys, tans, support = fit_node_trajectories(centers, src, radii, junk, times, key_times, None, k_tracks=8,
+                                                smoothness=1e-4, fallback="static")
+    assert support[1] > 0  # it had tracks ...
+    assert torch.allclose(keys[1], centers[1].expand(6, 3))  # ... but their fit explains nothing: static
+    keys_off, _, _ = fit_node_trajectories(centers, src, radii, junk, times, key_times, None, k_tracks=8,
+                                           smoothness=1e-4, fallback="static", max_residual_ratio=None)
+    assert (keys_off[1] - centers[1]).norm(dim=-1).max() > 0.05  # without the test it would move
