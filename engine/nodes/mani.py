@@ -79,12 +79,14 @@ def rank_within_group(group_sorted: torch.Tensor, num_groups: int) -> torch.Tens
 
 
 def match_within_voxels(tokens_n: torch.Tensor, fg: torch.Tensor, vox: torch.Tensor, num_vox: int,
-                        eta: float, gen: torch.Generator):
+                        eta: float, gen: torch.Generator, norms: torch.Tensor | None = None):
     """Bipartite soft matching inside every voxel.
 
     Parameters
     ----------
-    tokens_n : (N, D) unit-norm tokens; fg : (N,); vox : (N,) voxel id.
+    tokens_n : (N, D) unit-norm tokens, or any tokens with their norms in ``norms (N,)``
+    (the cosine is then formed on the small per-voxel blocks, so the caller need not
+    normalise all N × D tokens every iteration); fg : (N,); vox : (N,) voxel id.
 
     Returns
     -------
@@ -121,7 +123,11 @@ def match_within_voxels(tokens_n: torch.Tensor, fg: torch.Tensor, vox: torch.Ten
         # padded B columns are masked to −inf).
         za, zb = tokens_n[ida.clamp_min(0)], tokens_n[idb.clamp_min(0)]
         fa, fb = fg[ida.clamp_min(0)], fg[idb.clamp_min(0)]
-        sim = torch.bmm(za, zb.transpose(1, 2)) - eta * torch.maximum(fa.unsqueeze(2), fb.unsqueeze(1))
+        cos = torch.bmm(za, zb.transpose(1, 2))
+        if norms is not None:
+            na, nb = norms[ida.clamp_min(0)], norms[idb.clamp_min(0)]
+            cos = cos / (na.unsqueeze(2) * nb.unsqueeze(1)).clamp_min(1e-12)
+        sim = cos - eta * torch.maximum(fa.unsqueeze(2), fb.unsqueeze(1))
         sim = sim.masked_fill((idb < 0).unsqueeze(1), float("-inf"))
         best, arg = sim.max(2)  # [Vb, maxA]
         valid = ida >= 0
@@ -151,12 +157,13 @@ def mani_compress(positions: torch.Tensor, tokens: torch.Tensor, fg: torch.Tenso
     gen = torch.Generator().manual_seed(config.seed)
     m0 = positions.shape[0]
     pos = positions.float().clone()
-    tok_sum = tokens.float().clone()  # size-weighted token *sums* (only merged rows change)
+    tok_sum = tokens.float()  # size-weighted token *sums*; never written in place (no copy of the input)
     prior = fg.float().clone()
     tim = torch.zeros(m0) if time is None else time.float().clone()
     size = torch.ones(m0) if sizes is None else sizes.float().clone()
     if sizes is not None:
         tok_sum = tok_sum * size.unsqueeze(1)
+    tok_norm = tok_sum.norm(dim=1)  # kept up to date for the merged rows only
     p_dyn = prior.clone()
     assign = torch.arange(m0)
     diag = float((pos.max(0).values - pos.min(0).values).norm()) if m0 > 1 else 1.0
@@ -168,8 +175,8 @@ def mani_compress(positions: torch.Tensor, tokens: torch.Tensor, fg: torch.Tenso
         voxel = (config.v_init + it * config.dv) * diag
         it += 1
         vox, nv = voxel_ids(pos, voxel)
-        tok_n = torch.nn.functional.normalize(tok_sum, dim=1)  # cos is scale-free: sum ∝ mean
-        a, b, sim = match_within_voxels(tok_n, prior, vox, nv, config.eta, gen)
+        # cos is scale-free (sum ∝ mean): pass the sums and their norms
+        a, b, sim = match_within_voxels(tok_sum, prior, vox, nv, config.eta, gen, norms=tok_norm)
         if a.numel() == 0:
             history.append(n)
             continue
@@ -204,15 +211,18 @@ def mani_compress(positions: torch.Tensor, tokens: torch.Tensor, fg: torch.Tenso
         new_id = torch.cumsum(survive.long(), 0) - 1
         mapping = new_id[dest]
         nn_ = int(survive.sum())
-        nn_ = int(survive.sum())
         # ToMe merge: B absorbs all its A's; size-weighted means for the small per-node
         # fields, token sums updated in place only on the merged rows.
         wsum = torch.zeros(nn_).index_add_(0, mapping, size)
         mean = lambda x: torch.zeros(nn_).index_add_(0, mapping, x * size) / wsum  # noqa: E731
         pos = torch.zeros(nn_, 3).index_add_(0, mapping, pos * size.unsqueeze(1)) / wsum.unsqueeze(1)
         prior, tim, p_dyn = mean(prior), mean(tim), mean(p_dyn)
-        tok_sum.index_add_(0, cb, tok_sum[ca])
-        tok_sum = tok_sum[survive]
+        merged = tok_sum[survive]
+        merged.index_add_(0, new_id[cb], tok_sum[ca])
+        tok_sum = merged
+        rows = torch.unique(new_id[cb])
+        tok_norm = tok_norm[survive]
+        tok_norm[rows] = tok_sum[rows].norm(dim=1)
         size = wsum
         assign = mapping[assign]
         history.append(nn_)

@@ -86,3 +86,26 @@ def test_deterministic_under_seed():
     c = mani_compress(pos, tok, fg, ManiConfig(budget=200, seed=8))
     assert torch.equal(a.assignment, b.assignment) and torch.equal(a.positions, b.positions)
     assert not torch.equal(a.assignment, c.assignment)
+
+
+def test_matching_with_norms_equals_matching_normalised_tokens():
+    from engine.nodes.mani import match_within_voxels, voxel_ids
+
+    g = torch.Generator().manual_seed(3)
+    pos = torch.rand(500, 3, generator=g)
+    tok = torch.randn(500, 16, generator=g) * torch.rand(500, 1, generator=g) * 5  # token sums, varied scale
+    fg = torch.rand(500, generator=g)
+    vox, nv = voxel_ids(pos, 0.3)
+    a1, b1, s1 = match_within_voxels(torch.nn.functional.normalize(tok, dim=1), fg, vox, nv, 0.5,
+                                     torch.Generator().manual_seed(0))
+    a2, b2, s2 = match_within_voxels(tok, fg, vox, nv, 0.5, torch.Generator().manual_seed(0), norms=tok.norm(dim=1))
+    assert torch.equal(a1, a2) and torch.equal(b1, b2)
+    assert torch.allclose(s1, s2, atol=1e-5)
+
+
+def test_mani_does_not_modify_its_inputs():
+    g = torch.Generator().manual_seed(4)
+    pos, tok, fg = torch.rand(400, 3, generator=g), torch.randn(400, 8, generator=g), torch.rand(400, generator=g)
+    copies = [x.clone() for x in (pos, tok, fg)]
+    mani_compress(pos, tok, fg, ManiConfig(budget=50))
+    assert all(torch.equal(x, c) for x, c in zip((pos, tok, fg), copies))
