@@ -73,8 +73,6 @@ def make_scene(n: int, res: int, device="cpu", seed: int = 0):
 
 def count_evaluations(scene) -> int:
     """Gaussian-pixel evaluations of one CPU forward (exact row spans, before early stop)."""
-    import numpy as np
-
     from ..raster import cpu as C
     from ..raster import cpu_numba as KN
 
@@ -83,34 +81,31 @@ def count_evaluations(scene) -> int:
                                        s["opacities"].cpu(), s["w2c"].cpu(), s["K"].cpu(), s["width"], s["height"])
     W = H = s["width"]
     t = (W + KN.TILE - 1) // KN.TILE
-    off, gid, box = KN.bin_tiles(dz.numpy(), m2.numpy(), ext.numpy(), radii.numpy(), W, H, t, t)
-    data, ibox = KN.gather_instances(gid, m2.numpy(), cn.numpy(), dz.numpy(), s["colors"].cpu().numpy(),
-                                     s["opacities"].cpu().numpy(),
-                                     np.log(np.maximum(255.0 * s["opacities"].cpu().numpy(), 1.0)).astype(np.float32),
-                                     box)
-    return int(_count(off, data, ibox, W, H, t))
+    off, _, data, idata, _ = KN.bin_tiles(dz.numpy(), m2.numpy(), cn.numpy(), s["colors"].cpu().numpy(),
+                                          s["opacities"].cpu().numpy(), ext.numpy(), radii.numpy(), W, H, t, t)
+    return int(_count(off, data, idata, W, H, t))
 
 
-def _count(off, data, ibox, W, H, tiles_x):
+def _count(off, data, idata, W, H, tiles_x):
     from numba import njit
 
-    from ..raster.cpu_numba import TILE, _row_span
+    from ..raster.cpu_numba import R_X0, R_X1, R_Y0, R_Y1, TILE, _row_span
 
     @njit(cache=False)
-    def count(off, data, ibox, W, H, tiles_x):
+    def count(off, data, idata, W, H, tiles_x):
         total = 0
         for tile in range(off.shape[0] - 1):
             oy = (tile // tiles_x) * TILE
             ox = (tile % tiles_x) * TILE
             for k in range(off[tile], off[tile + 1]):
-                for py in range(max(ibox[k, 2], oy), min(ibox[k, 3], oy + TILE, H)):
+                for py in range(max(idata[k, R_Y0], oy), min(idata[k, R_Y1], oy + TILE, H)):
                     dy = float(py) + 0.5 - data[k, 1]
                     x0, x1 = _row_span(data[k, 2], data[k, 3], data[k, 4], data[k, 10], dy, data[k, 0],
-                                       max(ibox[k, 0], ox), min(ibox[k, 1], ox + TILE, W))
+                                       max(idata[k, R_X0], ox), min(idata[k, R_X1], ox + TILE, W))
                     total += x1 - x0
         return total
 
-    return count(off, data, ibox, W, H, tiles_x)
+    return count(off, data, idata, W, H, tiles_x)
 
 
 def run_one(backend: str, n: int, res: int, repeats: int, device: str | None) -> dict:

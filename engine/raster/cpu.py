@@ -98,11 +98,10 @@ class RasterizeCPU(torch.autograd.Function):
         T = np.empty((H, W), np.float32)
         last = np.empty((H, W), np.int32)
         with kernel_threads():
-            offsets, gid, box = K_.bin_tiles(dz, m2, _np(extents), radii.numpy(), W, H, tx, ty)
-            log_op = np.log(np.maximum(np.float32(255.0) * op, np.float32(1.0)))
-            data, ibox = K_.gather_instances(gid, m2, cn, dz, col, op, log_op, box)
-            K_.raster_forward(offsets, data, ibox, W, H, tx, bg, rgb, dep, T, last)
-        ctx.state = (offsets, gid, data, ibox, bg, T, last, W, H, tx, n)
+            offsets, gid, data, idata, gstart = K_.bin_tiles(dz, m2, cn, col, op, _np(extents), radii.numpy(),
+                                                             W, H, tx, ty)
+            K_.raster_forward(offsets, data, idata, W, H, tx, bg, rgb, dep, T, last)
+        ctx.state = (offsets, data, idata, gstart, bg, T, last, W, H, tx, n)
         ctx.dtypes = (means2d.dtype, conics.dtype, depths.dtype, colors.dtype, opacities.dtype)
         ctx.has_bg = background is not None
         ctx.bg_dtype = None if background is None else background.dtype
@@ -112,20 +111,26 @@ class RasterizeCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth):
-        offsets, gid, data, ibox, bg, T, last, W, H, tx, n = ctx.state
+        offsets, data, idata, gstart, bg, T, last, W, H, tx, n = ctx.state
         gr = np.zeros((H, W, 3), np.float32) if g_rgb is None else _np(g_rgb)
         ga = np.zeros((H, W), np.float32) if g_alpha is None else _np(g_alpha[..., 0])
         gd = np.zeros((H, W), np.float32) if g_depth is None else _np(g_depth[..., 0])
+        # per-Gaussian gradients, each its own contiguous array (no strided views downstream)
+        v_m2 = np.empty((n, 2), np.float32)
+        v_cn = np.empty((n, 3), np.float32)
+        v_op = np.empty(n, np.float32)
+        v_col = np.empty((n, 3), np.float32)
+        v_dz = np.empty(n, np.float32)
         with kernel_threads():
-            inst = K_.raster_backward(offsets, data, ibox, W, H, tx, bg, T, last, gr, ga, gd)
-            per = K_.scatter_instances(gid, inst, n)
-        per = torch.from_numpy(per)
+            inst = K_.raster_backward(offsets, data, idata, W, H, tx, bg, T, last, gr, ga, gd)
+            K_.sum_instances(gstart, inst, v_m2, v_cn, v_op, v_col, v_dz)
         d = ctx.dtypes
         v_bg = None
         if ctx.has_bg and ctx.needs_input_grad[9]:
             v_bg = (torch.from_numpy(gr) * torch.from_numpy(T)[..., None]).sum((0, 1)).to(ctx.bg_dtype)
-        return (per[:, 0:2].to(d[0]), per[:, 2:5].to(d[1]), per[:, 9].to(d[2]), per[:, 6:9].to(d[3]),
-                per[:, 5].to(d[4]), None, None, None, None, v_bg)
+        t = torch.from_numpy
+        return (t(v_m2).to(d[0]), t(v_cn).to(d[1]), t(v_dz).to(d[2]), t(v_col).to(d[3]), t(v_op).to(d[4]),
+                None, None, None, None, v_bg)
 
 
 def project(means, quats, scales, opacities, w2c, K, width, height, near=0.01, far=1e4):

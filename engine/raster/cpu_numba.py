@@ -8,15 +8,15 @@ LLVM from vectorising). Kernels are compiled with ``cache=True`` and
 Pipeline (forward)::
 
     project_forward   prange over Gaussians: EWA projection, conic, radii, alpha>=1/255 box
-    bin_tiles         boxes (prange), counting sort of instances by tile (serial), then a
-                      per-tile depth sort (prange; ties keep the lower Gaussian index)
-    gather_instances  prange: copy per-instance data into tile order (flat arrays)
+    bin_tiles         parallel counting sort of instances by tile (per-chunk counts and
+                      cursors), then per tile (prange): depth sort (ties keep the lower
+                      Gaussian index) fused with the copy of per-instance data into tile order
     raster_forward    prange over tiles: front-to-back compositing with early stop
 
 Backward mirrors it: ``raster_backward`` walks each tile's list in reverse (as in 3DGS),
 recovering the transmittance by division, writes per-instance gradients, which
-``scatter_instances`` sums per Gaussian; ``project_backward`` chains them to the 3D
-parameters. Semantics are those of :mod:`engine.raster.reference`.
+``sum_instances`` sums per Gaussian (prange over Gaussians, no write conflicts);
+``project_backward`` chains them to the 3D parameters. Semantics are those of :mod:`engine.raster.reference`.
 """
 
 from __future__ import annotations
@@ -173,112 +173,178 @@ def project_forward(means, quats, scales, opac, view, intr, width, height, near,
         extents[i, 1] = ey
 
 
-@njit(parallel=True, **_JIT)
-def _boxes(means2d, extents, radii, width, height, box, ntile):
-    """Pixel box (x0, x1, y0, y1; end exclusive, clipped) and tile count per Gaussian."""
-    for g in prange(means2d.shape[0]):
-        ntile[g] = 0
-        box[g, 0] = box[g, 1] = box[g, 2] = box[g, 3] = 0
-        if radii[g] <= 0:
-            continue
-        u, v = means2d[g, 0], means2d[g, 1]
-        ex, ey = extents[g, 0], extents[g, 1]
-        # pixel x whose centre x + 0.5 lies in [u - ex, u + ex]
-        x0 = max(0, int(math.ceil(u - ex - HALF)))
-        x1 = min(width, int(math.floor(u + ex - HALF)) + 1)
-        y0 = max(0, int(math.ceil(v - ey - HALF)))
-        y1 = min(height, int(math.floor(v + ey - HALF)) + 1)
-        if x1 <= x0 or y1 <= y0:
-            continue
-        box[g, 0], box[g, 1], box[g, 2], box[g, 3] = x0, x1, y0, y1
-        ntile[g] = ((x1 - 1) // TILE - x0 // TILE + 1) * ((y1 - 1) // TILE - y0 // TILE + 1)
+# One 64-byte record per Gaussian (``rec``) and per tile instance (``data``), float32 with
+# an int32 view of the same memory (``irec`` / ``idata``) for the integer fields. Copying a
+# Gaussian into tile order then moves one cache line instead of gathering from six arrays.
+NREC = 16
+R_MX, R_MY, R_A, R_B, R_C, R_OP, R_R, R_G, R_BL, R_Z, R_THR = range(11)  # float fields
+R_X0, R_X1, R_Y0, R_Y1 = 11, 12, 13, 14  # int: pixel box, end exclusive, clipped
+R_SLOT = 15  # int: rec -> first slot of the Gaussian's instances in Gaussian-major order
+#              data -> that instance's slot (row of the per-instance gradient array)
 
 
 @njit(parallel=True, **_JIT)
-def _sort_tiles(offsets, inst_gid, depths):
-    """Stable depth sort of every tile's list (lists arrive in index order, so ties keep
-    the lower index first, like the reference's stable global sort)."""
-    for t in prange(offsets.shape[0] - 1):
-        a, b = offsets[t], offsets[t + 1]
-        if b - a > 1:
-            # Unique int64 keys (depth bits, then position) sort faster than a stable
-            # argsort; positive float32 depths order like their bit patterns.
-            keys = np.empty(b - a, np.int64)
-            for j in range(b - a):
-                d = max(depths[inst_gid[a + j]], F0)
-                keys[j] = (np.int64(np.float32(d).view(np.int32)) << 32) | j
-            keys.sort()
-            ids = inst_gid[a:b].copy()
-            for j in range(b - a):
-                inst_gid[a + j] = ids[keys[j] & 0xFFFFFFFF]
+def _pack_count(means2d, conics, depths, colors, opac, extents, radii, width, height, tiles_x,
+                rec, irec, ntile, counts):
+    """Pass 1 of the binning, prange over chunks of Gaussians.
+
+    Inputs float32: means2d [N,2], conics [N,3], depths [N], colors [N,3], opac [N],
+    extents [N,2]; radii [N] int32. Writes the records rec/irec [N, NREC] of Gaussians with
+    a non-empty pixel box (others are left unset and never read), ntile [N] int64 (tiles
+    the box touches, 0 = none) and counts [P, T] int32 (instances of chunk P in tile T)."""
+    n = means2d.shape[0]
+    nch = counts.shape[0]
+    size = (n + nch - 1) // nch
+    for ch in prange(nch):
+        for t in range(counts.shape[1]):
+            counts[ch, t] = 0
+        for g in range(ch * size, min(n, (ch + 1) * size)):
+            ntile[g] = 0
+            if radii[g] <= 0:
+                continue
+            u, v = means2d[g, 0], means2d[g, 1]
+            ex, ey = extents[g, 0], extents[g, 1]
+            # pixel x whose centre x + 0.5 lies in [u - ex, u + ex]
+            x0 = max(0, int(math.ceil(u - ex - HALF)))
+            x1 = min(width, int(math.floor(u + ex - HALF)) + 1)
+            y0 = max(0, int(math.ceil(v - ey - HALF)))
+            y1 = min(height, int(math.floor(v + ey - HALF)) + 1)
+            if x1 <= x0 or y1 <= y0:
+                continue
+            rec[g, R_MX] = u
+            rec[g, R_MY] = v
+            rec[g, R_A] = conics[g, 0]
+            rec[g, R_B] = conics[g, 1]
+            rec[g, R_C] = conics[g, 2]
+            rec[g, R_OP] = opac[g]
+            rec[g, R_R] = colors[g, 0]
+            rec[g, R_G] = colors[g, 1]
+            rec[g, R_BL] = colors[g, 2]
+            rec[g, R_Z] = depths[g]
+            # sigma threshold for alpha >= 1/255: ln(255 o)
+            rec[g, R_THR] = math.log(max(F255 * opac[g], F1))
+            irec[g, R_X0] = x0
+            irec[g, R_X1] = x1
+            irec[g, R_Y0] = y0
+            irec[g, R_Y1] = y1
+            tx0, tx1 = x0 // TILE, (x1 - 1) // TILE + 1
+            ty0, ty1 = y0 // TILE, (y1 - 1) // TILE + 1
+            ntile[g] = (tx1 - tx0) * (ty1 - ty0)
+            for ty in range(ty0, ty1):
+                for tx in range(tx0, tx1):
+                    counts[ch, ty * tiles_x + tx] += 1
 
 
 @njit(**_JIT)
-def _fill(box, ntile, tiles_x, tiles_y):
-    """Counting sort of instances by tile (serial; lists come out in Gaussian index order)."""
-    n = box.shape[0]
-    counts = np.zeros(tiles_x * tiles_y + 1, np.int64)
+def _prefix(counts, ntile):
+    """Serial prefix sums (T x P and N adds, well under a millisecond): tile offsets [T+1]
+    int64, each chunk's first slot per tile cursor [P, T] int64 (chunks in Gaussian order,
+    so every tile list comes out in Gaussian index order) and each Gaussian's first slot
+    in Gaussian-major instance order gstart [N+1] int64."""
+    nch, nt = counts.shape
+    offsets = np.empty(nt + 1, np.int64)
+    cursor = np.empty((nch, nt), np.int64)
+    acc = 0
+    for t in range(nt):
+        offsets[t] = acc
+        for ch in range(nch):
+            cursor[ch, t] = acc
+            acc += counts[ch, t]
+    offsets[nt] = acc
+    n = ntile.shape[0]
+    gstart = np.empty(n + 1, np.int64)
+    acc = 0
     for g in range(n):
-        if ntile[g] > 0:
-            for ty in range(box[g, 2] // TILE, (box[g, 3] - 1) // TILE + 1):
-                for tx in range(box[g, 0] // TILE, (box[g, 1] - 1) // TILE + 1):
-                    counts[ty * tiles_x + tx + 1] += 1
-    offsets = np.cumsum(counts)
-    cursor = offsets[:-1].copy()
-    inst_gid = np.empty(offsets[-1], np.int32)
-    for g in range(n):
-        if ntile[g] > 0:
-            for ty in range(box[g, 2] // TILE, (box[g, 3] - 1) // TILE + 1):
-                for tx in range(box[g, 0] // TILE, (box[g, 1] - 1) // TILE + 1):
-                    t = ty * tiles_x + tx
-                    inst_gid[cursor[t]] = g
-                    cursor[t] += 1
-    return offsets, inst_gid
-
-
-def bin_tiles(depths, means2d, extents, radii, width, height, tiles_x, tiles_y):
-    """Per-tile instance lists, each in front-to-back order.
-
-    Returns ``offsets [T+1]`` (int64), ``inst_gid [I]`` (int32 Gaussian ids),
-    ``box [N, 4]`` int32 pixel box (x0, x1, y0, y1; end exclusive) clipped to the image.
-    Boxes and the per-tile sorts run in parallel; only the counting-sort fill is serial.
-    (Plain Python on purpose: a parallel kernel called from inside another jitted
-    function is not guaranteed to run in parallel.)"""
-    n = depths.shape[0]
-    box = np.empty((n, 4), np.int32)
-    ntile = np.empty(n, np.int64)
-    _boxes(means2d, extents, radii, width, height, box, ntile)
-    offsets, inst_gid = _fill(box, ntile, tiles_x, tiles_y)
-    _sort_tiles(offsets, inst_gid, depths)
-    return offsets, inst_gid, box
+        gstart[g] = acc
+        acc += ntile[g]
+    gstart[n] = acc
+    return offsets, cursor, gstart
 
 
 @njit(parallel=True, **_JIT)
-def gather_instances(inst_gid, means2d, conics, depths, colors, opac, log_opac, box):
-    """Copy per-Gaussian data into tile order. ``log_opac [N]`` = ``ln(max(255 o, 1))``.
-    Returns ``data [I, 11]`` float32 (mx, my, a, b, c, opacity, r, g, b, z, ln(255 o)) and
-    ``ibox [I, 4]`` int32."""
-    m = inst_gid.shape[0]
-    data = np.empty((m, 11), np.float32)
-    ibox = np.empty((m, 4), np.int32)
-    for k in prange(m):
-        g = inst_gid[k]
-        data[k, 0] = means2d[g, 0]
-        data[k, 1] = means2d[g, 1]
-        data[k, 2] = conics[g, 0]
-        data[k, 3] = conics[g, 1]
-        data[k, 4] = conics[g, 2]
-        data[k, 5] = opac[g]
-        data[k, 6] = colors[g, 0]
-        data[k, 7] = colors[g, 1]
-        data[k, 8] = colors[g, 2]
-        data[k, 9] = depths[g]
-        # sigma threshold for alpha >= 1/255 is ln(255 o) = ln(o) + ln(255); the log is per
-        # Gaussian, precomputed by the caller (instances outnumber Gaussians).
-        data[k, 10] = log_opac[g]
-        for j in range(4):
-            ibox[k, j] = box[g, j]
-    return data, ibox
+def _fill(irec, ntile, gstart, tiles_x, cursor, inst_gid):
+    """Pass 2, prange over the same chunks: each chunk writes its Gaussians into its own
+    slots of every tile list (a counting sort without a serial pass), and stores each
+    Gaussian's gstart in its record."""
+    n = ntile.shape[0]
+    nch = cursor.shape[0]
+    size = (n + nch - 1) // nch
+    for ch in prange(nch):
+        for g in range(ch * size, min(n, (ch + 1) * size)):
+            if ntile[g] > 0:
+                irec[g, R_SLOT] = np.int32(gstart[g])
+                for ty in range(irec[g, R_Y0] // TILE, (irec[g, R_Y1] - 1) // TILE + 1):
+                    for tx in range(irec[g, R_X0] // TILE, (irec[g, R_X1] - 1) // TILE + 1):
+                        t = ty * tiles_x + tx
+                        inst_gid[cursor[ch, t]] = g
+                        cursor[ch, t] += 1
+
+
+@njit(parallel=True, **_JIT)
+def _sort_gather(offsets, inst_gid, tiles_x, depths, rec, irec, data, idata):
+    """Per tile (prange): stable depth sort of the list (it arrives in index order, so ties
+    keep the lower index first, like the reference's stable global sort), then copy each
+    Gaussian's record into tile order, data/idata [I, NREC], with R_SLOT set to the
+    instance's Gaussian-major slot: gstart[g] + rank of this tile in g's tile box
+    (row-major). Sort and copy share one pass over the tile's instances."""
+    for t in prange(offsets.shape[0] - 1):
+        a, b = offsets[t], offsets[t + 1]
+        if b <= a:
+            continue
+        # Unique int64 keys (depth bits, then position) sort faster than a stable argsort;
+        # positive float32 depths order like their bit patterns.
+        keys = np.empty(b - a, np.int64)
+        for j in range(b - a):
+            d = max(depths[inst_gid[a + j]], F0)  # the dense array: fewer cache misses than rec
+            keys[j] = (np.int64(np.float32(d).view(np.int32)) << 32) | j
+        keys.sort()
+        tyi = t // tiles_x
+        txi = t - tyi * tiles_x
+        ids = inst_gid[a:b].copy()
+        for j in range(b - a):
+            g = ids[keys[j] & 0xFFFFFFFF]
+            k = a + j
+            inst_gid[k] = g
+            for f in range(R_X0):
+                data[k, f] = rec[g, f]
+            x0, x1, y0 = irec[g, R_X0], irec[g, R_X1], irec[g, R_Y0]
+            idata[k, R_X0] = x0
+            idata[k, R_X1] = x1
+            idata[k, R_Y0] = y0
+            idata[k, R_Y1] = irec[g, R_Y1]
+            ntx = (x1 - 1) // TILE - x0 // TILE + 1
+            idata[k, R_SLOT] = irec[g, R_SLOT] + (tyi - y0 // TILE) * ntx + (txi - x0 // TILE)
+
+
+def bin_tiles(depths, means2d, conics, colors, opac, extents, radii, width, height, tiles_x, tiles_y):
+    """Per-tile instance lists in front-to-back order, with the per-instance records.
+
+    Inputs float32: depths [N], means2d [N,2], conics [N,3], colors [N,3], opac [N],
+    extents [N,2]; radii [N] int32. Returns ``offsets [T+1]`` int64 (tile t's instances
+    are ``offsets[t]:offsets[t+1]``), ``inst_gid [I]`` int32 Gaussian ids, ``data [I, NREC]``
+    float32 and ``idata``, its int32 view (fields R_*), and ``gstart [N+1]`` int64
+    (Gaussian g's instances own gradient rows ``gstart[g]:gstart[g+1]``).
+
+    Three parallel passes and two tiny serial prefix sums; the chunk count depends on N
+    only, so results never depend on the thread count. (Plain Python on purpose: a
+    parallel kernel called from inside another jitted function is not guaranteed to run
+    in parallel.)"""
+    n = depths.shape[0]
+    nch = max(1, min(16, n // 8192))
+    rec = np.empty((n, NREC), np.float32)
+    irec = rec.view(np.int32)
+    ntile = np.empty(n, np.int64)
+    counts = np.empty((nch, tiles_x * tiles_y), np.int32)
+    _pack_count(means2d, conics, depths, colors, opac, extents, radii, width, height, tiles_x, rec, irec, ntile,
+                counts)
+    offsets, cursor, gstart = _prefix(counts, ntile)
+    m = int(offsets[-1])
+    inst_gid = np.empty(m, np.int32)
+    _fill(irec, ntile, gstart, tiles_x, cursor, inst_gid)
+    data = np.empty((m, NREC), np.float32)
+    idata = data.view(np.int32)
+    _sort_gather(offsets, inst_gid, tiles_x, depths, rec, irec, data, idata)
+    return offsets, inst_gid, data, idata, gstart
 
 
 @njit(inline="always", **_JIT)
@@ -343,9 +409,10 @@ def _exp_neg(s):
 
 
 @njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
-def raster_forward(offsets, data, ibox, width, height, tiles_x, bg, out_rgb, out_depth, out_T, out_last):
+def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, out_depth, out_T, out_last):
     """Front-to-back compositing, one tile per task.
 
+    ``data``/``idata`` [I, NREC]: instance records from :func:`bin_tiles`.
     Outputs (preallocated): out_rgb [H,W,3] (background included), out_depth [H,W]
     (sum w z), out_T [H,W] final transmittance, out_last [H,W] int32 = number of list
     entries of the pixel's tile up to and including its last composited Gaussian."""
@@ -364,15 +431,15 @@ def raster_forward(offsets, data, ibox, width, height, tiles_x, bg, out_rgb, out
         alive = np.float32(tw * th)
         start = offsets[tile]
         for k in range(start, offsets[tile + 1]):
-            mx, my = data[k, 0], data[k, 1]
-            a, b, c = data[k, 2], data[k, 3], data[k, 4]
-            op = data[k, 5]
-            r_, g_, b_, z_ = data[k, 6], data[k, 7], data[k, 8], data[k, 9]
-            thr = data[k, 10]
-            y0 = max(ibox[k, 2], oy)
-            y1 = min(ibox[k, 3], oy + th)
-            bx0 = max(ibox[k, 0], ox)
-            bx1 = min(ibox[k, 1], ox + tw)
+            mx, my = data[k, R_MX], data[k, R_MY]
+            a, b, c = data[k, R_A], data[k, R_B], data[k, R_C]
+            op = data[k, R_OP]
+            r_, g_, b_, z_ = data[k, R_R], data[k, R_G], data[k, R_BL], data[k, R_Z]
+            thr = data[k, R_THR]
+            y0 = max(idata[k, R_Y0], oy)
+            y1 = min(idata[k, R_Y1], oy + th)
+            bx0 = max(idata[k, R_X0], ox)
+            bx1 = min(idata[k, R_X1], ox + tw)
             narrow = bx1 - bx0 <= 8
             kk = np.float32(k - start + 1)
             stops = F0
@@ -426,12 +493,14 @@ def raster_forward(offsets, data, ibox, width, height, tiles_x, bg, out_rgb, out
 
 
 @njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
-def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_last,
+def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out_last,
                     g_rgb, g_alpha, g_depth):
     """Reverse-order backward of :func:`raster_forward` (as in 3DGS).
 
     ``g_rgb [H,W,3]``, ``g_alpha [H,W]``, ``g_depth [H,W]`` are upstream gradients.
-    Returns per-instance gradients ``[I, 10]``: (mx, my, a, b, c, opacity, r, g, b, z).
+    Returns per-instance gradients ``[I, 10]``: (mx, my, a, b, c, opacity, r, g, b, z), each
+    instance's row at its R_SLOT (Gaussian-major order, so the per-Gaussian sums read
+    contiguous rows).
     ``reassoc`` lets LLVM vectorise the per-Gaussian sums over pixels."""
     ntiles = offsets.shape[0] - 1
     grads = np.empty((data.shape[0], 10), np.float32)
@@ -465,17 +534,17 @@ def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_
         # entries past every pixel's last composited one get zero gradient
         for k in range(start + maxlast, offsets[tile + 1]):
             for f in range(10):
-                grads[k, f] = F0
+                grads[idata[k, R_SLOT], f] = F0
         for k in range(start + maxlast - 1, start - 1, -1):
-            mx, my = data[k, 0], data[k, 1]
-            a, b, c = data[k, 2], data[k, 3], data[k, 4]
-            op = data[k, 5]
-            r_, g_, b_, z_ = data[k, 6], data[k, 7], data[k, 8], data[k, 9]
-            thr = data[k, 10]
-            y0 = max(ibox[k, 2], oy)
-            y1 = min(ibox[k, 3], oy + th)
-            bx0 = max(ibox[k, 0], ox)
-            bx1 = min(ibox[k, 1], ox + tw)
+            mx, my = data[k, R_MX], data[k, R_MY]
+            a, b, c = data[k, R_A], data[k, R_B], data[k, R_C]
+            op = data[k, R_OP]
+            r_, g_, b_, z_ = data[k, R_R], data[k, R_G], data[k, R_BL], data[k, R_Z]
+            thr = data[k, R_THR]
+            y0 = max(idata[k, R_Y0], oy)
+            y1 = min(idata[k, R_Y1], oy + th)
+            bx0 = max(idata[k, R_X0], ox)
+            bx1 = min(idata[k, R_X1], ox + tw)
             narrow = bx1 - bx0 <= 8
             kk = np.float32(k - start)
             s_mx = F0
@@ -536,28 +605,50 @@ def raster_backward(offsets, data, ibox, width, height, tiles_x, bg, out_T, out_
                         s_a += dsig * HALF * dx * dx
                         s_b += dsig * dx * dy
                         s_c += dsig * HALF * dy * dy
-            grads[k, 0] = s_mx
-            grads[k, 1] = s_my
-            grads[k, 2] = s_a
-            grads[k, 3] = s_b
-            grads[k, 4] = s_c
-            grads[k, 5] = s_o
-            grads[k, 6] = s_r
-            grads[k, 7] = s_g
-            grads[k, 8] = s_bb
-            grads[k, 9] = s_z
+            slot = idata[k, R_SLOT]
+            grads[slot, 0] = s_mx
+            grads[slot, 1] = s_my
+            grads[slot, 2] = s_a
+            grads[slot, 3] = s_b
+            grads[slot, 4] = s_c
+            grads[slot, 5] = s_o
+            grads[slot, 6] = s_r
+            grads[slot, 7] = s_g
+            grads[slot, 8] = s_bb
+            grads[slot, 9] = s_z
     return grads
 
 
-@njit(**_JIT)
-def scatter_instances(inst_gid, grads, n):
-    """Sum per-instance gradients ``[I, 10]`` per Gaussian -> ``[N, 10]``."""
-    out = np.zeros((n, 10), np.float32)
-    for k in range(inst_gid.shape[0]):
-        g = inst_gid[k]
-        for j in range(10):
-            out[g, j] += grads[k, j]
-    return out
+@njit(parallel=True, **_JIT)
+def sum_instances(gstart, grads, v_means2d, v_conics, v_opac, v_colors, v_depths):
+    """Per-Gaussian sums of the per-instance gradients ``grads [I, 10]`` (rows in
+    Gaussian-major order: Gaussian g owns ``gstart[g]:gstart[g+1]``), prange over
+    Gaussians: contiguous reads, no write conflicts, fixed summation order. Outputs
+    (preallocated, overwritten): v_means2d [N,2], v_conics [N,3], v_opac [N],
+    v_colors [N,3], v_depths [N]."""
+    for g in prange(gstart.shape[0] - 1):
+        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = F0
+        for k in range(gstart[g], gstart[g + 1]):
+            s0 += grads[k, 0]
+            s1 += grads[k, 1]
+            s2 += grads[k, 2]
+            s3 += grads[k, 3]
+            s4 += grads[k, 4]
+            s5 += grads[k, 5]
+            s6 += grads[k, 6]
+            s7 += grads[k, 7]
+            s8 += grads[k, 8]
+            s9 += grads[k, 9]
+        v_means2d[g, 0] = s0
+        v_means2d[g, 1] = s1
+        v_conics[g, 0] = s2
+        v_conics[g, 1] = s3
+        v_conics[g, 2] = s4
+        v_opac[g] = s5
+        v_colors[g, 0] = s6
+        v_colors[g, 1] = s7
+        v_colors[g, 2] = s8
+        v_depths[g] = s9
 
 
 @njit(parallel=True, **_JIT)
