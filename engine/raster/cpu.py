@@ -100,7 +100,7 @@ class RasterizeCPU(torch.autograd.Function):
         with kernel_threads():
             offsets, gid, data, idata, gstart = K_.bin_tiles(dz, m2, cn, col, op, _np(extents), radii.numpy(),
                                                              W, H, tx, ty)
-            K_.raster_forward(offsets, data, idata, W, H, tx, bg, rgb, dep, T, last)
+            K_.tile_loop(K_.raster_forward, offsets, data, idata, W, H, tx, bg, rgb, dep, T, last)
         ctx.state = (offsets, data, idata, gstart, bg, T, last, W, H, tx, n)
         ctx.dtypes = (means2d.dtype, conics.dtype, depths.dtype, colors.dtype, opacities.dtype)
         ctx.has_bg = background is not None
@@ -122,7 +122,7 @@ class RasterizeCPU(torch.autograd.Function):
         v_col = np.empty((n, 3), np.float32)
         v_dz = np.empty(n, np.float32)
         with kernel_threads():
-            inst = K_.raster_backward(offsets, data, idata, W, H, tx, bg, T, last, gr, ga, gd)
+            inst = K_.tile_loop(K_.raster_backward, offsets, data, idata, W, H, tx, bg, T, last, gr, ga, gd)
             K_.sum_instances(gstart, inst, v_m2, v_cn, v_op, v_col, v_dz)
         d = ctx.dtypes
         v_bg = None

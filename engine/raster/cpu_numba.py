@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import get_parallel_chunksize, njit, prange, set_parallel_chunksize
 
 F0 = np.float32(0.0)
 F1 = np.float32(1.0)
@@ -42,6 +42,22 @@ TENTH = np.float32(0.1)
 FOV_PAD = np.float32(0.3)
 TILE = 16
 CHUNK = 256  # Gaussians per parallel task in the projection backward
+# Tiles per work chunk in the tile loops: chunks are handed to threads dynamically, because
+# tiles differ widely in work (and a thread may be descheduled on a shared machine); with
+# the default static split one thread can sit idle while the other finishes its half.
+# Set from Python around the call (see :func:`tile_loop`): calling set_parallel_chunksize
+# inside a kernel would make it uncacheable.
+TILE_CHUNK = 4
+
+
+def tile_loop(kernel, *args):
+    """Call a kernel whose prange runs over tiles with dynamic TILE_CHUNK scheduling."""
+    prev = get_parallel_chunksize()
+    set_parallel_chunksize(TILE_CHUNK)
+    try:
+        return kernel(*args)
+    finally:
+        set_parallel_chunksize(prev)
 
 _JIT = dict(cache=True, error_model="numpy", nogil=True)
 
@@ -343,7 +359,7 @@ def bin_tiles(depths, means2d, conics, colors, opac, extents, radii, width, heig
     _fill(irec, ntile, gstart, tiles_x, cursor, inst_gid)
     data = np.empty((m, NREC), np.float32)
     idata = data.view(np.int32)
-    _sort_gather(offsets, inst_gid, tiles_x, depths, rec, irec, data, idata)
+    tile_loop(_sort_gather, offsets, inst_gid, tiles_x, depths, rec, irec, data, idata)
     return offsets, inst_gid, data, idata, gstart
 
 
@@ -566,6 +582,12 @@ def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out
                 cyy = HALF * c * dy * dy
                 bdy = b * dy
                 row = (py - oy) * TILE - ox
+                # dy is constant along the row, so the conic / mean gradients only need three
+                # sums over the row's pixels (dsig, dsig dx, dsig dx^2): fewer per-lane
+                # products and fewer horizontal reductions per chunk.
+                q0 = F0
+                q1 = F0
+                q2 = F0
                 for c0 in range(x0, x1, 8):
                     base = np.uint64(row + c0)
                     n_in = np.float32(x1 - c0)
@@ -600,11 +622,16 @@ def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out
                         dal = dal if (live & (raw <= ALPHA_MAX)) else F0
                         s_o += dal * gau
                         dsig = -dal * al
-                        s_mx -= dsig * (a * dx + bdy)
-                        s_my -= dsig * (b * dx + c * dy)
-                        s_a += dsig * HALF * dx * dx
-                        s_b += dsig * dx * dy
-                        s_c += dsig * HALF * dy * dy
+                        dsx = dsig * dx
+                        q0 += dsig
+                        q1 += dsx
+                        q2 += dsx * dx
+                # d sigma / d(mx, my, a, b, c) = (-(a dx + b dy), -(b dx + c dy), dx^2/2, dx dy, dy^2/2)
+                s_mx -= a * q1 + bdy * q0
+                s_my -= b * q1 + c * dy * q0
+                s_a += HALF * q2
+                s_b += dy * q1
+                s_c += HALF * dy * dy * q0
             slot = idata[k, R_SLOT]
             grads[slot, 0] = s_mx
             grads[slot, 1] = s_my
