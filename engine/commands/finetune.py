@@ -143,7 +143,7 @@ def finetune_appearance(model, views, steps: int, config=None, seed: int = 0, ba
     eval_views = [views[i] for i in picks]
     before = mean_psnr(model, eval_views, backend)
     t0 = time.perf_counter()
-    log_every = max(1, steps // 50)
+    log_every = max(1, min(10, steps // 50))  # the UI sees progress within seconds
     for step in range(1, steps + 1):
         v = views[int(torch.randint(0, len(views), (1,), generator=gen))]
         out = _render(model, v, backend)

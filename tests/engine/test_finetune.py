@@ -117,3 +117,27 @@ def test_finetune_bad_input_is_a_clear_error(tmp_path):
     err = _events(r.stdout)[-1]
     assert err["event"] == "error" and "bundle folder not found" in err["message"]
     assert "Traceback" not in r.stderr
+
+
+def test_finetune_cancel_changes_nothing(trained, tmp_path):
+    import signal
+
+    _, src = trained
+    bundle = _copy_bundle(src, tmp_path / "b")
+    snapshot = {p.name: p.read_bytes() for p in bundle.iterdir() if p.is_file()}
+    proc = subprocess.Popen([sys.executable, "-m", "engine", "finetune", str(bundle), "--steps", "100000",
+                             "--jsonl"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        for line in proc.stdout:  # wait until the optimisation runs
+            if '"stage": "finetune"' in line:
+                break
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130
+    err = _events(out)[-1]
+    assert err["event"] == "error" and "not changed" in err["message"]
+    assert {p.name: p.read_bytes() for p in bundle.iterdir() if p.is_file()} == snapshot
+    assert not (bundle / "backups").exists()
