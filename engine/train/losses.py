@@ -1,7 +1,9 @@
 """Loss terms of the composite objective (paper Sec. 'Optimization').
 
-All functions are plain torch, differentiable, and document their shapes. Images are
-``[H, W, C]`` float in [0, 1].
+All functions are torch, differentiable, and document their shapes. Images are
+``[H, W, C]`` float in [0, 1]. :func:`ssim` runs the fused Numba kernel of
+:mod:`.fused_ssim` on CPU float32 images (same value to float rounding, a few times
+cheaper); :func:`ssim_torch` is the reference and the GPU path.
 """
 
 from __future__ import annotations
@@ -50,7 +52,28 @@ def _blur_matrices(h: int, w: int, window: int, sigma: float, device, dtype):
     return mats
 
 
+#: use engine/train/fused_ssim.py for CPU float32 images (tests switch it off to compare)
+FUSED_SSIM = True
+
+
 def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean structural similarity of two ``[H, W, C]`` images (Gaussian window, as in 3DGS).
+
+    CPU float32 images without a target gradient go through the fused Numba kernel
+    (:mod:`.fused_ssim`); everything else through :func:`ssim_torch`.
+    """
+    if FUSED_SSIM:
+        try:
+            from .fused_ssim import fused_ssim, fused_ssim_available
+        except ImportError:  # no numba: the torch path
+            pass
+        else:
+            if fused_ssim_available(pred, target):
+                return fused_ssim(pred, target, window, sigma)
+    return ssim_torch(pred, target, window, sigma)
+
+
+def ssim_torch(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Mean structural similarity of two ``[H, W, C]`` images (Gaussian window, as in 3DGS).
 
     Uses a separable Gaussian filter with zero padding ('same' size) like the 3DGS
@@ -112,15 +135,19 @@ def depth_shift_scale_invariant(pred: torch.Tensor, target: torch.Tensor, valid:
     target : (H, W) prior depth (any affine-equivalent scale).
     valid : (H, W) bool, pixels where both are meaningful.
     """
-    p, t = pred[valid], target[valid]
-    if p.numel() < 16:
-        return pred.sum() * 0.0
     with torch.no_grad():
+        # the fit and the median need the valid values; the differentiable part below is a
+        # dense masked mean, so autograd never scatters back through a boolean gather
+        p, t = pred.detach()[valid], target[valid]
+        n = p.numel()
+        if n < 16:
+            return pred.sum() * 0.0
         a = torch.stack([t, torch.ones_like(t)], dim=1)
         sol = torch.linalg.lstsq(a, p.unsqueeze(1)).solution.squeeze(1)
-        aligned = sol[0] * t + sol[1]
-        norm = p.detach().median().clamp_min(1e-6)
-    return (p - aligned).abs().mean() / norm
+        aligned = sol[0] * target + sol[1]
+        norm = p.median().clamp_min(1e-6)
+        weight = valid.to(pred.dtype) / (n * norm)  # mean over valid pixels, / median depth
+    return ((pred - aligned).abs() * weight).sum()
 
 
 def mask_loss(alpha: torch.Tensor, dyn_alpha: torch.Tensor, fg_prior: torch.Tensor) -> torch.Tensor:
@@ -167,7 +194,7 @@ def arap_loss(pos_t0: torch.Tensor, pos_t1: torch.Tensor, rot_t1: torch.Tensor, 
     """
     e0 = pos_t0[graph_idx] - pos_t0[:, None, :]
     e1 = pos_t1[graph_idx] - pos_t1[:, None, :]
-    r = (rot_t1[:, None, :, :] @ e0.unsqueeze(-1)).squeeze(-1)
+    r = e0 @ rot_t1.transpose(-1, -2)  # R_i e0_ij for all j: one [k, 3] x [3, 3] product per node
     err = ((e1 - r) ** 2).sum(-1)
     if graph_w is not None:
         return (err * graph_w).sum() / graph_w.sum().clamp_min(1e-8)
