@@ -9,6 +9,26 @@ from __future__ import annotations
 import torch
 
 from .. import raster
+from ..raster.sh import sh_to_colors
+
+#: use the fused Numba SH colour (engine/train/fused_sh.py) where it applies
+FUSED_SH = True
+
+
+def scene_colors(model, means: torch.Tensor, w2c: torch.Tensor) -> torch.Tensor:
+    """The 3DGS colours ``[G, 3]`` of ``model``'s SH at deformed ``means [G, 3]`` seen from
+    ``w2c [4, 4]`` -- what :func:`render_scene` computes from the SH -- through the fused
+    CPU kernel for degrees 0-1 (same values to float rounding), else
+    :func:`engine.raster.sh.sh_to_colors`."""
+    if FUSED_SH:
+        try:
+            from .fused_sh import fused_sh_available, fused_sh_colors
+        except ImportError:  # no numba
+            pass
+        else:
+            if fused_sh_available(model.sh_degree, means, model.sh_dc, model.sh_rest):
+                return fused_sh_colors(means, model.sh_dc, model.sh_rest, model.sh_degree, w2c)
+    return sh_to_colors(model.sh(), model.sh_degree, means, w2c)
 
 
 def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
