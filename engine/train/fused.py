@@ -15,7 +15,9 @@ backward
     node DQs ``[N, 8]`` by a serial scatter-add in Gaussian order (deterministic).
 
 The blend weights and the binding carry no gradient (they are buffers). Everything is
-float64 inside the kernels; tensors in and out are float32 on the CPU. The torch
+float64 inside the kernels; tensors in and out are float32 on the CPU (read and written
+in place, no conversion copies). The per-Gaussian passes run in parallel (``prange``,
+each Gaussian writes only its own rows); only the scatter to the nodes is serial. The torch
 implementation stays the reference; ``tests/engine/test_train.py`` compares both.
 """
 
@@ -23,16 +25,31 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from numba import njit
+from numba import njit, prange
+
+from .fused_ssim import kernel_threads
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 
 
-@njit(**_JIT)
-def _forward(dqn, idx, w, x, q, out_x, out_q, blend, sgn):
+@njit(inline="always", **_JIT)
+def _unit(q, g, normalize):
+    """Row ``g`` of ``q [G, 4]`` as float64, divided by ``max(|q|, 1e-12)`` when ``normalize``
+    (what ``quat_normalize`` does in torch)."""
+    aw, ax, ay, az = np.float64(q[g, 0]), np.float64(q[g, 1]), np.float64(q[g, 2]), np.float64(q[g, 3])
+    if normalize:
+        n = max(np.sqrt(aw * aw + ax * ax + ay * ay + az * az), 1e-12)
+        aw, ax, ay, az = aw / n, ax / n, ay / n, az / n
+    return aw, ax, ay, az
+
+
+@njit(parallel=True, **_JIT)
+def _forward(dqn, idx, w, x, q, normalize, out_x, out_q, blend, sgn):
+    """Per Gaussian (prange: each writes only its own rows). ``x [G, 3]``, ``q [G, 4]``,
+    ``w [G, K]`` float32 read as float64; ``q`` normalised here when ``normalize``."""
     G, K = idx.shape
-    b = np.empty(8)
-    for g in range(G):
+    for g in prange(G):
+        b = blend[g]
         piv = 0
         for k in range(1, K):
             if w[g, k] > w[g, piv]:
@@ -45,11 +62,9 @@ def _forward(dqn, idx, w, x, q, out_x, out_q, blend, sgn):
             dot = dqn[j, 0] * dqn[p, 0] + dqn[j, 1] * dqn[p, 1] + dqn[j, 2] * dqn[p, 2] + dqn[j, 3] * dqn[p, 3]
             s = -1.0 if dot < 0 else 1.0
             sgn[g, k] = s
-            ws = w[g, k] * s
+            ws = np.float64(w[g, k]) * s
             for c in range(8):
                 b[c] += ws * dqn[j, c]
-        for c in range(8):
-            blend[g, c] = b[c]
         n = np.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2] + b[3] * b[3])
         if n < 1e-12:
             n = 1e-12
@@ -61,11 +76,11 @@ def _forward(dqn, idx, w, x, q, out_x, out_q, blend, sgn):
         tz = 2.0 * (-dw * rz - dx * ry + dy * rx + dz * rw)
         xx, yy, zz = rx * rx, ry * ry, rz * rz
         xy, xz, yz, wx, wy, wz = rx * ry, rx * rz, ry * rz, rw * rx, rw * ry, rw * rz
-        px, py, pz = x[g, 0], x[g, 1], x[g, 2]
+        px, py, pz = np.float64(x[g, 0]), np.float64(x[g, 1]), np.float64(x[g, 2])
         out_x[g, 0] = (1 - 2 * (yy + zz)) * px + 2 * (xy - wz) * py + 2 * (xz + wy) * pz + tx
         out_x[g, 1] = 2 * (xy + wz) * px + (1 - 2 * (xx + zz)) * py + 2 * (yz - wx) * pz + ty
         out_x[g, 2] = 2 * (xz - wy) * px + 2 * (yz + wx) * py + (1 - 2 * (xx + yy)) * pz + tz
-        aw, ax, ay, az = q[g, 0], q[g, 1], q[g, 2], q[g, 3]
+        aw, ax, ay, az = _unit(q, g, normalize)
         ow = rw * aw - rx * ax - ry * ay - rz * az
         ox = rw * ax + rx * aw + ry * az - rz * ay
         oy = rw * ay - rx * az + ry * aw + rz * ax
@@ -77,19 +92,22 @@ def _forward(dqn, idx, w, x, q, out_x, out_q, blend, sgn):
             out_q[g, 0], out_q[g, 1], out_q[g, 2], out_q[g, 3] = 1.0, 0.0, 0.0, 0.0
 
 
-@njit(**_JIT)
-def _backward(dqn, idx, w, x, q, blend, sgn, gxo, gqo, g_dqn, g_x, g_q):
+@njit(parallel=True, **_JIT)
+def _backward(dqn, idx, w, x, q, normalize, blend, sgn, gxo, gqo, gbs, g_x, g_q):
+    """Per Gaussian (prange): gradients to ``x``, ``q`` (through the normalisation when
+    ``normalize``) and to the blended DQ, ``gbs [G, 8]``; :func:`_scatter_nodes` then sums
+    those into the node DQs serially."""
     G, K = idx.shape
-    gb = np.empty(8)
-    for g in range(G):
+    for g in prange(G):
+        gb = gbs[g]
         b = blend[g]
         n = np.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2] + b[3] * b[3])
         if n < 1e-12:
             n = 1e-12
         rw, rx, ry, rz = b[0] / n, b[1] / n, b[2] / n, b[3] / n
         dw, dx, dy, dz = b[4] / n, b[5] / n, b[6] / n, b[7] / n
-        px, py, pz = x[g, 0], x[g, 1], x[g, 2]
-        gx, gy, gz = gxo[g, 0], gxo[g, 1], gxo[g, 2]
+        px, py, pz = np.float64(x[g, 0]), np.float64(x[g, 1]), np.float64(x[g, 2])
+        gx, gy, gz = np.float64(gxo[g, 0]), np.float64(gxo[g, 1]), np.float64(gxo[g, 2])
         # --- points: y = R(qr) p + t
         xx, yy, zz = rx * rx, ry * ry, rz * rz
         xy, xz, yz, wx, wy, wz = rx * ry, rx * rz, ry * rz, rw * rx, rw * ry, rw * rz
@@ -125,7 +143,7 @@ def _backward(dqn, idx, w, x, q, blend, sgn, gxo, gqo, g_dqn, g_x, g_q):
         gry -= cy
         grz -= cz
         # --- rotations: o = r/|r|, r = qr ⊗ a
-        aw, ax, ay, az = q[g, 0], q[g, 1], q[g, 2], q[g, 3]
+        aw, ax, ay, az = _unit(q, g, normalize)
         ow = rw * aw - rx * ax - ry * ay - rz * az
         ox = rw * ax + rx * aw + ry * az - rz * ay
         oy = rw * ay - rx * az + ry * aw + rz * ax
@@ -133,7 +151,7 @@ def _backward(dqn, idx, w, x, q, blend, sgn, gxo, gqo, g_dqn, g_x, g_q):
         on = np.sqrt(ow * ow + ox * ox + oy * oy + oz * oz)
         if on > 1e-12:
             uw, ux, uy, uz = ow / on, ox / on, oy / on, oz / on
-            hw, hx, hy, hz = gqo[g, 0], gqo[g, 1], gqo[g, 2], gqo[g, 3]
+            hw, hx, hy, hz = np.float64(gqo[g, 0]), np.float64(gqo[g, 1]), np.float64(gqo[g, 2]), np.float64(gqo[g, 3])
             d = uw * hw + ux * hx + uy * hy + uz * hz
             hw, hx, hy, hz = (hw - uw * d) / on, (hx - ux * d) / on, (hy - uy * d) / on, (hz - uz * d) / on
             # g_qr += h ⊗ conj(a)
@@ -144,10 +162,19 @@ def _backward(dqn, idx, w, x, q, blend, sgn, gxo, gqo, g_dqn, g_x, g_q):
             grz += hw * bz + hx * by - hy * bx + hz * bw
             # g_a = conj(qr) ⊗ h
             cw_, cx_, cy_, cz_ = rw, -rx, -ry, -rz
-            g_q[g, 0] = cw_ * hw - cx_ * hx - cy_ * hy - cz_ * hz
-            g_q[g, 1] = cw_ * hx + cx_ * hw + cy_ * hz - cz_ * hy
-            g_q[g, 2] = cw_ * hy - cx_ * hz + cy_ * hw + cz_ * hx
-            g_q[g, 3] = cw_ * hz + cx_ * hy - cy_ * hx + cz_ * hw
+            ea = cw_ * hw - cx_ * hx - cy_ * hy - cz_ * hz
+            eb = cw_ * hx + cx_ * hw + cy_ * hz - cz_ * hy
+            ec = cw_ * hy - cx_ * hz + cy_ * hw + cz_ * hx
+            ed = cw_ * hz + cx_ * hy - cy_ * hx + cz_ * hw
+            if normalize:  # a = q / max(|q|, eps): g_q = (g_a - a (a . g_a)) / |q|
+                qw, qx, qy, qz = np.float64(q[g, 0]), np.float64(q[g, 1]), np.float64(q[g, 2]), np.float64(q[g, 3])
+                qn = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+                if qn > 1e-12:
+                    da = aw * ea + ax * eb + ay * ec + az * ed
+                    ea, eb, ec, ed = (ea - aw * da) / qn, (eb - ax * da) / qn, (ec - ay * da) / qn, (ed - az * da) / qn
+                else:
+                    ea, eb, ec, ed = ea / 1e-12, eb / 1e-12, ec / 1e-12, ed / 1e-12
+            g_q[g, 0], g_q[g, 1], g_q[g, 2], g_q[g, 3] = ea, eb, ec, ed
         else:
             g_q[g, 0], g_q[g, 1], g_q[g, 2], g_q[g, 3] = 0.0, 0.0, 0.0, 0.0
         # --- normalisation: qr = br/n, qd = bd/n
@@ -158,62 +185,76 @@ def _backward(dqn, idx, w, x, q, blend, sgn, gxo, gqo, g_dqn, g_x, g_q):
         gb[2] = (gry - ry * dr - ry * dd) / n
         gb[3] = (grz - rz * dr - rz * dd) / n
         gb[4], gb[5], gb[6], gb[7] = gdw / n, gdx / n, gdy / n, gdz / n
-        # --- blend: scatter to the node DQs in Gaussian order (deterministic)
+
+
+@njit(**_JIT)
+def _scatter_nodes(idx, w, sgn, gbs, g_dqn):
+    """Blend backward: scatter ``gbs [G, 8]`` to the node DQs in Gaussian order (serial, so
+    the float sums are deterministic)."""
+    G, K = idx.shape
+    for g in range(G):
         for k in range(K):
             j = idx[g, k]
-            ws = w[g, k] * sgn[g, k]
+            ws = np.float64(w[g, k]) * sgn[g, k]
             for c in range(8):
-                g_dqn[j, c] += ws * gb[c]
+                g_dqn[j, c] += ws * gbs[g, c]
+
+
+def _f32(t: torch.Tensor) -> np.ndarray:
+    return t.detach().to(torch.float32).contiguous().numpy()  # no copy for float32 tensors
 
 
 class _FusedDeform(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, dq_nodes, idx, w, means, quats_unit):
-        dqn = dq_nodes.detach().double().contiguous().numpy()
+    def forward(ctx, dq_nodes, idx, w, means, quats, normalize):
+        dqn = dq_nodes.detach().double().contiguous().numpy()  # [N, 8]: small
         idx_np = idx.detach().contiguous().numpy()
-        w_np = w.detach().double().contiguous().numpy()
-        x = means.detach().double().contiguous().numpy()
-        q = quats_unit.detach().double().contiguous().numpy()
+        w_np, x, q = _f32(w), _f32(means), _f32(quats)
         G, K = idx_np.shape
-        out_x = np.empty((G, 3))
-        out_q = np.empty((G, 4))
-        blend = np.empty((G, 8))
+        out_x = np.empty((G, 3), np.float32)
+        out_q = np.empty((G, 4), np.float32)
+        blend = np.zeros((G, 8))
         sgn = np.empty((G, K))
-        _forward(dqn, idx_np, w_np, x, q, out_x, out_q, blend, sgn)
-        ctx.saved = (dqn, idx_np, w_np, x, q, blend, sgn, dq_nodes.shape[0])
-        dt = means.dtype
-        return torch.from_numpy(out_x).to(dt), torch.from_numpy(out_q).to(dt)
+        with kernel_threads():
+            _forward(dqn, idx_np, w_np, x, q, bool(normalize), out_x, out_q, blend, sgn)
+        ctx.saved = (dqn, idx_np, w_np, x, q, bool(normalize), blend, sgn, dq_nodes.shape[0])
+        return torch.from_numpy(out_x), torch.from_numpy(out_q)
 
     @staticmethod
     def backward(ctx, g_out_x, g_out_q):
-        dqn, idx_np, w_np, x, q, blend, sgn, n_nodes = ctx.saved
+        dqn, idx_np, w_np, x, q, normalize, blend, sgn, n_nodes = ctx.saved
         G = x.shape[0]
-        gxo = np.zeros((G, 3)) if g_out_x is None else g_out_x.double().contiguous().numpy()
-        gqo = np.zeros((G, 4)) if g_out_q is None else g_out_q.double().contiguous().numpy()
+        gxo = np.zeros((G, 3), np.float32) if g_out_x is None else _f32(g_out_x)
+        gqo = np.zeros((G, 4), np.float32) if g_out_q is None else _f32(g_out_q)
+        gbs = np.empty((G, 8))
         g_dqn = np.zeros((n_nodes, 8))
-        g_x = np.empty((G, 3))
-        g_q = np.empty((G, 4))
-        _backward(dqn, idx_np, w_np, x, q, blend, sgn, gxo, gqo, g_dqn, g_x, g_q)
-        dt = torch.float32
-        return torch.from_numpy(g_dqn).to(dt), None, None, torch.from_numpy(g_x).to(dt), torch.from_numpy(g_q).to(dt)
+        g_x = np.empty((G, 3), np.float32)
+        g_q = np.empty((G, 4), np.float32)
+        with kernel_threads():
+            _backward(dqn, idx_np, w_np, x, q, normalize, blend, sgn, gxo, gqo, gbs, g_x, g_q)
+        _scatter_nodes(idx_np, w_np, sgn, gbs, g_dqn)
+        return (torch.from_numpy(g_dqn).to(torch.float32), None, None, torch.from_numpy(g_x),
+                torch.from_numpy(g_q), None)
 
 
 def fused_deform(dq_nodes: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, means: torch.Tensor,
-                 quats_unit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                 quats: torch.Tensor, normalize: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """DQB-deform canonical Gaussians (CPU, float32).
 
     Parameters
     ----------
     dq_nodes : (N, 8) unit node dual quaternions (differentiable).
     idx : (G, K) long binding; w : (G, K) blend weights (no gradient).
-    means : (G, 3) canonical centres; quats_unit : (G, 4) unit canonical rotations.
+    means : (G, 3) canonical centres; quats : (G, 4) canonical rotations, unit unless
+        ``normalize`` (then divided by their norm inside the kernel, as ``quat_normalize``
+        would, gradient included: no [G, 4] torch ops and their backward per step).
 
     Returns
     -------
     means_t (G, 3), quats_t (G, 4): same values as ``dq_apply_points(dq, means)`` and
     ``dq_apply_rotations(dq, quats_unit)`` with ``dq = dq_blend(dq_nodes, idx, w)``.
     """
-    return _FusedDeform.apply(dq_nodes, idx, w, means, quats_unit)
+    return _FusedDeform.apply(dq_nodes, idx, w, means, quats, normalize)
 
 
 def fused_available(*tensors: torch.Tensor) -> bool:

@@ -51,6 +51,39 @@ def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
     return torch.cat([x, torch.sin(xf).flatten(-2), torch.cos(xf).flatten(-2)], dim=-1)
 
 
+def _catmull_rom_basis(key_times: np.ndarray, t: float) -> np.ndarray:
+    """Weights ``b [K]`` (float64) of the keys in the Catmull-Rom Hermite spline at ``t``.
+
+    Mirrors :func:`~engine.geometry.hermite.hermite_eval` with
+    :func:`~engine.geometry.hermite.catmull_rom_tangents`: ``t`` clamped to the key range
+    (constant extrapolation), segment ``seg`` with ``t_seg <= t < t_seg+1``, and tangents
+    ``M_k = Σ_j C_kj P_j`` (one-sided at the ends, central inside).
+    """
+    k = key_times.shape[0]
+    b = np.zeros(k)
+    if k == 1:
+        b[0] = 1.0
+        return b
+    tc = min(max(t, key_times[0]), key_times[-1])
+    seg = min(max(int(np.searchsorted(key_times, tc, side="right")) - 1, 0), k - 2)
+    t0, dt = key_times[seg], key_times[seg + 1] - key_times[seg]
+    tau = (tc - t0) / dt
+    t2, t3 = tau * tau, tau * tau * tau
+    h00, h10, h01, h11 = 2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + tau, -2 * t3 + 3 * t2, t3 - t2
+
+    def tangent_row(i):  # C[i] : M_i = Σ_j C[i, j] P_j
+        row = np.zeros(k)
+        lo, hi = (0, 1) if i == 0 else ((k - 2, k - 1) if i == k - 1 else (i - 1, i + 1))
+        row[hi] += 1.0 / (key_times[hi] - key_times[lo])
+        row[lo] -= 1.0 / (key_times[hi] - key_times[lo])
+        return row
+
+    b[seg] += h00
+    b[seg + 1] += h01
+    b += dt * (h10 * tangent_row(seg) + h11 * tangent_row(seg + 1))
+    return b
+
+
 class DeformMLP(nn.Module):
     """SC-GS-style node deformation field: ``(c_i, t) -> (Δp_i, Δq_i)``.
 
@@ -191,11 +224,43 @@ class DynamicScene(nn.Module):
         return (catmull_rom_tangents(self.key_times, self.pos_keys),
                 catmull_rom_tangents(self.key_times, self.rot_keys))
 
+    def spline_basis(self, t: float) -> tuple[int, int, torch.Tensor]:
+        """``(lo, hi, b [hi - lo])`` with ``ξ(t) = Σ_k b_k keys[:, lo + k]`` for Catmull-Rom
+        tangents (the other keys have weight 0 at ``t``).
+
+        Catmull-Rom tangents are linear in the keys, so the whole spline is
+        (:func:`~engine.geometry.hermite.hermite_basis_matrix`); evaluating it as one
+        ``[K]``-weighted sum replaces ~50 small ``[N, K, C]`` ops per evaluation and their
+        backward. Computed in float64 numpy (microseconds) and cached per time while the
+        key times are unchanged (their ``_version`` moves on any in-place edit).
+        """
+        kt = self.key_times
+        key = (float(t), id(kt), kt._version)
+        cache = self.__dict__.setdefault("_basis_cache", {})
+        hit = cache.get(key)
+        if hit is None:
+            b = _catmull_rom_basis(kt.detach().cpu().double().numpy(), float(t))
+            nz = np.nonzero(b)[0]
+            lo, hi = (int(nz[0]), int(nz[-1]) + 1) if len(nz) else (0, 1)
+            # at most 4 keys carry weight (the segment's ends and their tangent neighbours)
+            hit = (lo, hi, torch.from_numpy(b[lo:hi]).to(device=kt.device, dtype=self.pos_keys.dtype))
+            if len(cache) > 512:  # random ARAP times would otherwise grow it without bound
+                cache.clear()
+            cache[key] = hit
+        return hit
+
     def node_state(self, t: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Node positions ``p_i(t)`` [N, 3] and unit quaternions ``q_i(t)`` [N, 4] at time ``t``."""
         if self.mlp is not None:
             dp, q = self.mlp(self.node_centers, t)
             return self.node_centers + dp, q
+        if getattr(self, "explicit_tangents", None) is None:
+            # Catmull-Rom: the spline is the basis-weighted sum of the keys (same values as
+            # hermite_eval with catmull_rom_tangents, to float rounding)
+            lo, hi, b = self.spline_basis(t)
+            b = b[None, :, None]
+            pos = (self.pos_keys[:, lo:hi] * b).sum(1)
+            return pos, quat_normalize((self.rot_keys[:, lo:hi] * b).sum(1))
         tt = torch.tensor([float(t)], device=self.key_times.device, dtype=self.key_times.dtype)
         pos_tan, rot_tan = self.node_tangents()
         explicit = getattr(self, "explicit_tangents", None)
@@ -212,21 +277,33 @@ class DynamicScene(nn.Module):
         return dq_blend(dq_nodes, self.bind_idx if bind_idx is None else bind_idx,
                         self.bind_w if bind_w is None else bind_w)
 
-    def deform(self, t: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """Gaussian centres [G, 3] and rotations [G, 4] at time ``t``."""
+    def node_dq(self, t: float) -> torch.Tensor:
+        """Node transforms at time ``t`` as unit dual quaternions [N, 8]."""
+        pos, rot = self.node_state(t)
+        return node_transforms_dq(self.node_centers, pos, rot)
+
+    def deform(self, t: float, dq_nodes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Gaussian centres [G, 3] and rotations [G, 4] at time ``t``.
+
+        ``dq_nodes [N, 8]``: the node transforms at ``t`` when the caller already has them
+        (:meth:`node_dq`; the training step shares one evaluation between its terms).
+        """
         if FUSED_DEFORM and fused_available(self.means, self.quats, self.bind_w):
             # one Numba pass (forward + hand-written backward) instead of ~100 [G, K, 8]
             # torch ops; same values as the torch reference below (engine/train/fused.py)
-            pos, rot = self.node_state(t)
-            dq_nodes = node_transforms_dq(self.node_centers, pos, rot)
-            return fused_deform(dq_nodes, self.bind_idx, self.bind_w, self.means, quat_normalize(self.quats))
-        dq = self.gaussian_transforms(t)
+            dq_nodes = self.node_dq(t) if dq_nodes is None else dq_nodes
+            return fused_deform(dq_nodes, self.bind_idx, self.bind_w, self.means, self.quats, normalize=True)
+        if dq_nodes is None:
+            dq = self.gaussian_transforms(t)
+        else:
+            dq = dq_blend(dq_nodes, self.bind_idx, self.bind_w)
         return dq_apply_points(dq, self.means), dq_apply_rotations(dq, quat_normalize(self.quats))
 
-    def deform_points(self, points: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, t: float) -> torch.Tensor:
-        """Move arbitrary canonical points [P, 3] bound by (idx, w) [P, K_b] to time ``t``."""
-        pos, rot = self.node_state(t)
-        dq_nodes = node_transforms_dq(self.node_centers, pos, rot)
+    def deform_points(self, points: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, t: float,
+                      dq_nodes: torch.Tensor | None = None) -> torch.Tensor:
+        """Move arbitrary canonical points [P, 3] bound by (idx, w) [P, K_b] to time ``t``
+        (``dq_nodes [N, 8]`` as in :meth:`deform`)."""
+        dq_nodes = self.node_dq(t) if dq_nodes is None else dq_nodes
         if FUSED_DEFORM and fused_available(points, w):
             ident = points.new_tensor([1.0, 0.0, 0.0, 0.0]).expand(points.shape[0], 4)
             return fused_deform(dq_nodes, idx, w, points, ident)[0]
