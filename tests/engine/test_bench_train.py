@@ -1,0 +1,36 @@
+"""`python -m engine.bench train` on a tiny size: valid JSON rows with the documented columns
+(behaviour only; timings are never asserted)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+
+REQUIRED = ("scene", "width", "height", "gaussians", "nodes", "steps", "its_per_s", "ms_step", "cpu_ms_step",
+            "deform", "sh", "raster_fwd", "losses", "backward", "bwd_raster", "bwd_deform", "bwd_torch", "optimizer",
+            "densify_stats", "other", "densify_ms", "its_per_s_amortised", "peak_rss_mb", "load_1m", "threads")
+
+
+def test_bench_train_rows_are_json_with_phases():
+    r = subprocess.run([sys.executable, "-m", "engine.bench", "train", "--width", "64", "--gaussians", "1500",
+                        "--nodes", "40", "--frames", "12", "--steps", "3", "--warmup", "1", "--repeats", "2",
+                        "--json"], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = [json.loads(line) for line in r.stdout.splitlines() if line.strip()]
+    assert len(rows) == 2
+    for row in rows:
+        for key in REQUIRED:
+            assert key in row, key
+        assert row["scene"] == "synthetic" and (row["width"], row["height"]) == (64, 48)
+        assert row["steps"] == 3 and row["nodes"] == 40 and 0 < row["gaussians"] <= 1500
+        assert row["its_per_s"] > 0 and row["ms_step"] > 0
+        # the phases (and "other", the remainder) add up to the step
+        parts = sum(row[k] for k in ("deform", "sh", "raster_fwd", "losses", "backward", "optimizer",
+                                     "densify_stats", "other"))
+        assert abs(parts - row["ms_step"]) < 0.05 * row["ms_step"] + 0.1
+        assert row["bwd_raster"] + row["bwd_deform"] + row["bwd_torch"] <= row["backward"] + 0.1
+
