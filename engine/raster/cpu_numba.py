@@ -41,7 +41,6 @@ BOX_PAD = np.float32(0.01)
 TENTH = np.float32(0.1)
 FOV_PAD = np.float32(0.3)
 TILE = 16
-CHUNK = 256  # Gaussians per parallel task in the projection backward
 # Tiles per work chunk in the tile loops: chunks are handed to threads dynamically, because
 # tiles differ widely in work (and a thread may be descheduled on a shared machine); with
 # the default static split one thread can sit idle while the other finishes its half.
@@ -76,18 +75,6 @@ def _quat_rot(qw, qx, qy, qz):
     r21 = F2 * (y * z + w * x)
     r22 = F1 - F2 * (x * x + y * y)
     return w, x, y, z, inv, r00, r01, r02, r10, r11, r12, r20, r21, r22
-
-
-@njit(inline="always", **_JIT)
-def _mm(A, B, out):
-    """Small dense matrix product into ``out`` (no BLAS inside Numba, no allocation)."""
-    for r in range(A.shape[0]):
-        for q in range(B.shape[1]):
-            acc = F0
-            for j in range(A.shape[1]):
-                acc += A[r, j] * B[j, q]
-            out[r, q] = acc
-    return out
 
 
 @njit(parallel=True, **_JIT)
@@ -678,11 +665,40 @@ def sum_instances(gstart, grads, v_means2d, v_conics, v_opac, v_colors, v_depths
         v_depths[g] = s9
 
 
+@njit(inline="always", **_JIT)
+def _sandwich(v, a00, a01, a02, a11, a12, a22):
+    """``v^T A v``-style congruence ``B = R^T A R`` for symmetric ``A`` (six entries) and
+    the 3x3 ``v`` (``view``'s rotation block); returns B's six entries (b00 b01 b02 b11
+    b12 b22). Scalar code: no scratch arrays, no loops over runtime shapes."""
+    # AR = A R (rows of A times columns of R)
+    t00 = a00 * v[0, 0] + a01 * v[1, 0] + a02 * v[2, 0]
+    t01 = a00 * v[0, 1] + a01 * v[1, 1] + a02 * v[2, 1]
+    t02 = a00 * v[0, 2] + a01 * v[1, 2] + a02 * v[2, 2]
+    t10 = a01 * v[0, 0] + a11 * v[1, 0] + a12 * v[2, 0]
+    t11 = a01 * v[0, 1] + a11 * v[1, 1] + a12 * v[2, 1]
+    t12 = a01 * v[0, 2] + a11 * v[1, 2] + a12 * v[2, 2]
+    t20 = a02 * v[0, 0] + a12 * v[1, 0] + a22 * v[2, 0]
+    t21 = a02 * v[0, 1] + a12 * v[1, 1] + a22 * v[2, 1]
+    t22 = a02 * v[0, 2] + a12 * v[1, 2] + a22 * v[2, 2]
+    b00 = v[0, 0] * t00 + v[1, 0] * t10 + v[2, 0] * t20
+    b01 = v[0, 0] * t01 + v[1, 0] * t11 + v[2, 0] * t21
+    b02 = v[0, 0] * t02 + v[1, 0] * t12 + v[2, 0] * t22
+    b11 = v[0, 1] * t01 + v[1, 1] * t11 + v[2, 1] * t21
+    b12 = v[0, 1] * t02 + v[1, 1] * t12 + v[2, 1] * t22
+    b22 = v[0, 2] * t02 + v[1, 2] * t12 + v[2, 2] * t22
+    return b00, b01, b02, b11, b12, b22
+
+
 @njit(parallel=True, **_JIT)
 def project_backward(means, quats, scales, view, intr, width, height, eps2d, radii,
                      v_means2d, v_conics, v_depths, v_means, v_quats, v_scales):
     """Backward of :func:`project_forward` for visible Gaussians (``radii > 0``); the
-    depth gradient flows for every Gaussian. Outputs are preallocated and overwritten."""
+    depth gradient flows for every Gaussian. Inputs float32 as in the forward plus the
+    upstream v_means2d [N,2], v_conics [N,3], v_depths [N]; outputs (preallocated,
+    overwritten) v_means [N,3], v_quats [N,4], v_scales [N,3].
+
+    All 2x2 / 3x3 products are written out as scalars (symmetric ones by their six
+    entries): small-matrix loops over runtime shapes neither unroll nor vectorise."""
     n = means.shape[0]
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     W = np.float32(width)
@@ -693,158 +709,142 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
     lxn = cx / fx + FOV_PAD * tan_x
     lyp = (H - cy) / fy + FOV_PAD * tan_y
     lyn = cy / fy + FOV_PAD * tan_y
-    # Scratch matrices are allocated once per chunk of Gaussians, not per Gaussian.
-    nch = (n + CHUNK - 1) // CHUNK
-    for ch in prange(nch):
-        Rq = np.empty((3, 3), np.float32)
-        M = np.empty((3, 3), np.float32)
-        C3 = np.empty((3, 3), np.float32)
-        Rv = np.empty((3, 3), np.float32)
-        J = np.zeros((2, 3), np.float32)
-        Q = np.empty((2, 2), np.float32)
-        G = np.empty((2, 2), np.float32)
-        dR = np.empty((3, 3), np.float32)
-        t33a = np.empty((3, 3), np.float32)
-        t33b = np.empty((3, 3), np.float32)
-        Wc = np.empty((3, 3), np.float32)
-        t23 = np.empty((2, 3), np.float32)
-        S2 = np.empty((2, 2), np.float32)
-        t22 = np.empty((2, 2), np.float32)
-        V = np.empty((2, 2), np.float32)
-        dWc = np.empty((3, 3), np.float32)
-        dJ = np.empty((2, 3), np.float32)
-        dC3 = np.empty((3, 3), np.float32)
-        dM = np.empty((3, 3), np.float32)
-        RvT = np.empty((3, 3), np.float32)
-        JT = np.empty((3, 2), np.float32)
-        t32 = np.empty((3, 2), np.float32)
-        for r in range(3):
-            for q in range(3):
-                Rv[r, q] = view[r, q]
-                RvT[q, r] = view[r, q]
-        for i in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
-            v_quats[i, 0] = F0
-            v_quats[i, 1] = F0
-            v_quats[i, 2] = F0
-            v_quats[i, 3] = F0
-            v_scales[i, 0] = F0
-            v_scales[i, 1] = F0
-            v_scales[i, 2] = F0
-            gpx = F0
-            gpy = F0
-            gpz = v_depths[i]
-            if radii[i] > 0:
-                mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
-                px = view[0, 0] * mx + view[0, 1] * my + view[0, 2] * mz + view[0, 3]
-                py = view[1, 0] * mx + view[1, 1] * my + view[1, 2] * mz + view[1, 3]
-                pz = view[2, 0] * mx + view[2, 1] * my + view[2, 2] * mz + view[2, 3]
-                iz = F1 / pz
-                iz2 = iz * iz
-                # mean2d
-                gu, gv = v_means2d[i, 0], v_means2d[i, 1]
-                gpx += gu * fx * iz
-                gpy += gv * fy * iz
-                gpz -= (gu * fx * px + gv * fy * py) * iz2
-                qw, qx, qy, qz, qinv, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_rot(
-                    quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
-                s0, s1, s2 = scales[i, 0], scales[i, 1], scales[i, 2]
-                Rq[0, 0], Rq[0, 1], Rq[0, 2] = r00, r01, r02
-                Rq[1, 0], Rq[1, 1], Rq[1, 2] = r10, r11, r12
-                Rq[2, 0], Rq[2, 1], Rq[2, 2] = r20, r21, r22
-                for r in range(3):
-                    M[r, 0] = Rq[r, 0] * s0
-                    M[r, 1] = Rq[r, 1] * s1
-                    M[r, 2] = Rq[r, 2] * s2
-                for r in range(3):
-                    for q in range(3):
-                        acc = F0
-                        for j in range(3):
-                            acc += M[r, j] * M[q, j]
-                        C3[r, q] = acc
-                _mm(_mm(Rv, C3, t33a), RvT, Wc)
-                xc = px * iz
-                yc = py * iz
-                cl_x = xc < -lxn or xc > lxp
-                cl_y = yc < -lyn or yc > lyp
-                tx = pz * min(lxp, max(-lxn, xc))
-                ty = pz * min(lyp, max(-lyn, yc))
-                J[0, 0] = fx * iz
-                J[0, 2] = -fx * tx * iz2
-                J[1, 1] = fy * iz
-                J[1, 2] = -fy * ty * iz2
-                for r in range(3):  # contiguous transpose: faster than a .T view in _mm
-                    JT[r, 0] = J[0, r]
-                    JT[r, 1] = J[1, r]
-                _mm(_mm(J, Wc, t23), JT, S2)
-                ca = S2[0, 0] + eps2d
-                cb = S2[0, 1]
-                cc = S2[1, 1] + eps2d
-                idet = F1 / (ca * cc - cb * cb)
-                # conic Q = inv(S); dL/dS = -Q G Q with G the symmetric conic gradient
-                Q[0, 0] = cc * idet
-                Q[0, 1] = -cb * idet
-                Q[1, 0] = -cb * idet
-                Q[1, 1] = ca * idet
-                G[0, 0] = -v_conics[i, 0]  # negated: V = Q (-G) Q = dL/dS
-                G[0, 1] = -HALF * v_conics[i, 1]
-                G[1, 0] = -HALF * v_conics[i, 1]
-                G[1, 1] = -v_conics[i, 2]
-                _mm(_mm(Q, G, t22), Q, V)
-                _mm(_mm(JT, V, t32), J, dWc)
-                _mm(_mm(V, J, t23), Wc, dJ)
-                _mm(_mm(RvT, dWc, t33a), Rv, dC3)
-                _mm(dC3, M, dM)
-                for r in range(3):  # dJ = 2 V J Wc, dM = 2 dC3 M (V, Wc, dC3 symmetric)
-                    dM[r, 0] *= F2
-                    dM[r, 1] *= F2
-                    dM[r, 2] *= F2
-                    if r < 2:
-                        dJ[r, 0] *= F2
-                        dJ[r, 1] *= F2
-                        dJ[r, 2] *= F2
-                # M = Rq diag(s)
-                gs0 = F0
-                gs1 = F0
-                gs2 = F0
-                for r in range(3):
-                    gs0 += dM[r, 0] * Rq[r, 0]
-                    gs1 += dM[r, 1] * Rq[r, 1]
-                    gs2 += dM[r, 2] * Rq[r, 2]
-                    dR[r, 0] = dM[r, 0] * s0
-                    dR[r, 1] = dM[r, 1] * s1
-                    dR[r, 2] = dM[r, 2] * s2
-                v_scales[i, 0] = gs0
-                v_scales[i, 1] = gs1
-                v_scales[i, 2] = gs2
-                w, x, y, z = qw, qx, qy, qz
-                gw = F2 * (-z * dR[0, 1] + y * dR[0, 2] + z * dR[1, 0] - x * dR[1, 2] - y * dR[2, 0] + x * dR[2, 1])
-                gx = F2 * (y * dR[0, 1] + z * dR[0, 2] + y * dR[1, 0] - w * dR[1, 2] + z * dR[2, 0] + w * dR[2, 1]
-                           - F2 * x * dR[1, 1] - F2 * x * dR[2, 2])
-                gy = F2 * (-F2 * y * dR[0, 0] + x * dR[0, 1] + w * dR[0, 2] + x * dR[1, 0] + z * dR[1, 2]
-                           - w * dR[2, 0] + z * dR[2, 1] - F2 * y * dR[2, 2])
-                gz = F2 * (-F2 * z * dR[0, 0] - w * dR[0, 1] + x * dR[0, 2] + w * dR[1, 0] - F2 * z * dR[1, 1]
-                           + y * dR[1, 2] + x * dR[2, 0] + y * dR[2, 1])
-                dot = w * gw + x * gx + y * gy + z * gz
-                v_quats[i, 0] = (gw - w * dot) * qinv
-                v_quats[i, 1] = (gx - x * dot) * qinv
-                v_quats[i, 2] = (gy - y * dot) * qinv
-                v_quats[i, 3] = (gz - z * dot) * qinv
-                # J -> camera point
-                gpz -= dJ[0, 0] * fx * iz2 + dJ[1, 1] * fy * iz2
-                if cl_x:
-                    lx = tx * iz
-                    gpz += dJ[0, 2] * fx * lx * iz2
-                else:
-                    gpx -= dJ[0, 2] * fx * iz2
-                    gpz += dJ[0, 2] * F2 * fx * px * iz2 * iz
-                if cl_y:
-                    ly = ty * iz
-                    gpz += dJ[1, 2] * fy * ly * iz2
-                else:
-                    gpy -= dJ[1, 2] * fy * iz2
-                    gpz += dJ[1, 2] * F2 * fy * py * iz2 * iz
-                # (Wc depends on the view only through the fixed camera rotation.)
-            # dL/dmeans = R^T dL/dp
-            v_means[i, 0] = view[0, 0] * gpx + view[1, 0] * gpy + view[2, 0] * gpz
-            v_means[i, 1] = view[0, 1] * gpx + view[1, 1] * gpy + view[2, 1] * gpz
-            v_means[i, 2] = view[0, 2] * gpx + view[1, 2] * gpy + view[2, 2] * gpz
+    Rv = np.empty((3, 3), np.float32)  # the camera rotation, contiguous
+    for r in range(3):
+        for q in range(3):
+            Rv[r, q] = view[r, q]
+    Rt = Rv.T.copy()
+    for i in prange(n):
+        v_quats[i, 0] = F0
+        v_quats[i, 1] = F0
+        v_quats[i, 2] = F0
+        v_quats[i, 3] = F0
+        v_scales[i, 0] = F0
+        v_scales[i, 1] = F0
+        v_scales[i, 2] = F0
+        gpx = F0
+        gpy = F0
+        gpz = v_depths[i]
+        if radii[i] > 0:
+            mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
+            px = view[0, 0] * mx + view[0, 1] * my + view[0, 2] * mz + view[0, 3]
+            py = view[1, 0] * mx + view[1, 1] * my + view[1, 2] * mz + view[1, 3]
+            pz = view[2, 0] * mx + view[2, 1] * my + view[2, 2] * mz + view[2, 3]
+            iz = F1 / pz
+            iz2 = iz * iz
+            # mean2d
+            gu, gv = v_means2d[i, 0], v_means2d[i, 1]
+            gpx += gu * fx * iz
+            gpy += gv * fy * iz
+            gpz -= (gu * fx * px + gv * fy * py) * iz2
+            w, x, y, z, qinv, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_rot(
+                quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
+            s0, s1, s2 = scales[i, 0], scales[i, 1], scales[i, 2]
+            # M = Rq diag(s), C3 = M M^T
+            m00, m01, m02 = r00 * s0, r01 * s1, r02 * s2
+            m10, m11, m12 = r10 * s0, r11 * s1, r12 * s2
+            m20, m21, m22 = r20 * s0, r21 * s1, r22 * s2
+            c00 = m00 * m00 + m01 * m01 + m02 * m02
+            c01 = m00 * m10 + m01 * m11 + m02 * m12
+            c02 = m00 * m20 + m01 * m21 + m02 * m22
+            c11 = m10 * m10 + m11 * m11 + m12 * m12
+            c12 = m10 * m20 + m11 * m21 + m12 * m22
+            c22 = m20 * m20 + m21 * m21 + m22 * m22
+            # Wc = Rv C3 Rv^T = (Rv^T)^T C3 (Rv^T)
+            w00, w01, w02, w11, w12, w22 = _sandwich(Rt, c00, c01, c02, c11, c12, c22)
+            xc = px * iz
+            yc = py * iz
+            cl_x = xc < -lxn or xc > lxp
+            cl_y = yc < -lyn or yc > lyp
+            tx = pz * min(lxp, max(-lxn, xc))
+            ty = pz * min(lyp, max(-lyn, yc))
+            # J = [[j00, 0, j02], [0, j11, j12]]
+            j00 = fx * iz
+            j02 = -fx * tx * iz2
+            j11 = fy * iz
+            j12 = -fy * ty * iz2
+            # S2 = J Wc J^T (+ eps2d on the diagonal)
+            ca = j00 * (j00 * w00 + j02 * w02) + j02 * (j00 * w02 + j02 * w22) + eps2d
+            cb = j11 * (j00 * w01 + j02 * w12) + j12 * (j00 * w02 + j02 * w22)
+            cc = j11 * (j11 * w11 + j12 * w12) + j12 * (j11 * w12 + j12 * w22) + eps2d
+            idet = F1 / (ca * cc - cb * cb)
+            # conic Q = inv(S2); dL/dS2 = V = Q (-G) Q with G the symmetric conic gradient
+            q00 = cc * idet
+            q01 = -cb * idet
+            q11 = ca * idet
+            g00 = -v_conics[i, 0]
+            g01 = -HALF * v_conics[i, 1]
+            g11 = -v_conics[i, 2]
+            t00 = q00 * g00 + q01 * g01
+            t01 = q00 * g01 + q01 * g11
+            t10 = q01 * g00 + q11 * g01
+            t11 = q01 * g01 + q11 * g11
+            v00 = t00 * q00 + t01 * q01
+            v01 = t00 * q01 + t01 * q11
+            v11 = t10 * q01 + t11 * q11
+            # dWc = J^T V J (symmetric)
+            e0 = v00 * j02 + v01 * j12  # (V J)[0, 2]
+            e1 = v01 * j02 + v11 * j12  # (V J)[1, 2]
+            dw00 = j00 * v00 * j00
+            dw01 = j00 * v01 * j11
+            dw02 = j00 * e0
+            dw11 = j11 * v11 * j11
+            dw12 = j11 * e1
+            dw22 = j02 * e0 + j12 * e1
+            # dJ = 2 V J Wc; only the non-zero entries of J are needed
+            a0, a1 = v00 * j00, v01 * j11  # (V J)[0, :2]
+            b0, b1 = v01 * j00, v11 * j11  # (V J)[1, :2]
+            dj00 = F2 * (a0 * w00 + a1 * w01 + e0 * w02)
+            dj02 = F2 * (a0 * w02 + a1 * w12 + e0 * w22)
+            dj11 = F2 * (b0 * w01 + b1 * w11 + e1 * w12)
+            dj12 = F2 * (b0 * w02 + b1 * w12 + e1 * w22)
+            # dC3 = Rv^T dWc Rv
+            d00, d01, d02, d11, d12, d22 = _sandwich(Rv, dw00, dw01, dw02, dw11, dw12, dw22)
+            # dM = 2 dC3 M ; M = Rq diag(s) -> dR = dM diag(s), ds_c = sum_r dM[r, c] Rq[r, c]
+            dm00 = F2 * (d00 * m00 + d01 * m10 + d02 * m20)
+            dm01 = F2 * (d00 * m01 + d01 * m11 + d02 * m21)
+            dm02 = F2 * (d00 * m02 + d01 * m12 + d02 * m22)
+            dm10 = F2 * (d01 * m00 + d11 * m10 + d12 * m20)
+            dm11 = F2 * (d01 * m01 + d11 * m11 + d12 * m21)
+            dm12 = F2 * (d01 * m02 + d11 * m12 + d12 * m22)
+            dm20 = F2 * (d02 * m00 + d12 * m10 + d22 * m20)
+            dm21 = F2 * (d02 * m01 + d12 * m11 + d22 * m21)
+            dm22 = F2 * (d02 * m02 + d12 * m12 + d22 * m22)
+            v_scales[i, 0] = dm00 * r00 + dm10 * r10 + dm20 * r20
+            v_scales[i, 1] = dm01 * r01 + dm11 * r11 + dm21 * r21
+            v_scales[i, 2] = dm02 * r02 + dm12 * r12 + dm22 * r22
+            dR00, dR01, dR02 = dm00 * s0, dm01 * s1, dm02 * s2
+            dR10, dR11, dR12 = dm10 * s0, dm11 * s1, dm12 * s2
+            dR20, dR21, dR22 = dm20 * s0, dm21 * s1, dm22 * s2
+            gw = F2 * (-z * dR01 + y * dR02 + z * dR10 - x * dR12 - y * dR20 + x * dR21)
+            gx = F2 * (y * dR01 + z * dR02 + y * dR10 - w * dR12 + z * dR20 + w * dR21
+                       - F2 * x * dR11 - F2 * x * dR22)
+            gy = F2 * (-F2 * y * dR00 + x * dR01 + w * dR02 + x * dR10 + z * dR12
+                       - w * dR20 + z * dR21 - F2 * y * dR22)
+            gz = F2 * (-F2 * z * dR00 - w * dR01 + x * dR02 + w * dR10 - F2 * z * dR11
+                       + y * dR12 + x * dR20 + y * dR21)
+            # through the quaternion normalisation
+            dot = w * gw + x * gx + y * gy + z * gz
+            v_quats[i, 0] = (gw - w * dot) * qinv
+            v_quats[i, 1] = (gx - x * dot) * qinv
+            v_quats[i, 2] = (gy - y * dot) * qinv
+            v_quats[i, 3] = (gz - z * dot) * qinv
+            # J -> camera point
+            gpz -= dj00 * fx * iz2 + dj11 * fy * iz2
+            if cl_x:
+                lx = tx * iz
+                gpz += dj02 * fx * lx * iz2
+            else:
+                gpx -= dj02 * fx * iz2
+                gpz += dj02 * F2 * fx * px * iz2 * iz
+            if cl_y:
+                ly = ty * iz
+                gpz += dj12 * fy * ly * iz2
+            else:
+                gpy -= dj12 * fy * iz2
+                gpz += dj12 * F2 * fy * py * iz2 * iz
+            # (Wc depends on the view only through the fixed camera rotation.)
+        # dL/dmeans = R^T dL/dp
+        v_means[i, 0] = view[0, 0] * gpx + view[1, 0] * gpy + view[2, 0] * gpz
+        v_means[i, 1] = view[0, 1] * gpx + view[1, 1] * gpy + view[2, 1] * gpz
+        v_means[i, 2] = view[0, 2] * gpx + view[1, 2] * gpy + view[2, 2] * gpz
