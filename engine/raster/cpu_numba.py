@@ -47,6 +47,10 @@ TILE = 16
 # Set from Python around the call (see :func:`tile_loop`): calling set_parallel_chunksize
 # inside a kernel would make it uncacheable.
 TILE_CHUNK = 4
+# Binning splits the Gaussians into at most MAX_BIN_CHUNKS chunks of >= BIN_CHUNK (each
+# chunk has its own tile counts and cursors; few enough that the prefix sums stay tiny).
+BIN_CHUNK = 8192
+MAX_BIN_CHUNKS = 16
 
 
 def tile_loop(kernel, *args):
@@ -333,7 +337,7 @@ def bin_tiles(depths, means2d, conics, colors, opac, extents, radii, width, heig
     parallel kernel called from inside another jitted function is not guaranteed to run
     in parallel.)"""
     n = depths.shape[0]
-    nch = max(1, min(16, n // 8192))
+    nch = max(1, min(MAX_BIN_CHUNKS, n // BIN_CHUNK))
     rec = np.empty((n, NREC), np.float32)
     irec = rec.view(np.int32)
     ntile = np.empty(n, np.int64)
