@@ -99,15 +99,12 @@ def _hysteresis(lo, hi):
 RIGID_FLOOR, SAMPSON_FLOOR = 0.25, 0.1
 
 
-def _multigap_residual(gray, K, w2c, depth, S, s, gaps=(1, 2, 4), fb_px=1.0):
-    """Normalised residual (max of rigid-flow and Sampson) over frame gaps ±``gaps`` -> [F,h,w].
+def _pair_flows(gray, fb_px=1.0):
+    """One-frame DIS flows forward/backward and their forward-backward consistency masks.
 
-    Flow to t±k is the chain of the one-frame DIS flows (one-frame flow is reliable on
-    repetitive texture where a direct k-frame flow is not); a pixel counts for gap k only
-    while every step is forward-backward consistent and stays in the image (occlusions and
-    out-of-view points excluded). Each gap's residual is divided by its per-frame robust scale
-    (median + 1.4826 MAD, at least RIGID_FLOOR / SAMPSON_FLOOR px per frame of gap), the max of the
-    two is taken per pixel and the valid gaps are averaged.
+    Returns ``(fw, bw, okf, okb)``: lists of F-1 ``[h,w,2]`` flows (t -> t+1, t+1 -> t) and float32
+    ``[h,w]`` masks (1 where ``|fwd + bwd(p + fwd)| < fb_px + 0.05 |fwd|``). Independent of depth,
+    so the mask -> depth -> mask pass reuses them.
     """
     import cv2
 
@@ -116,21 +113,40 @@ def _multigap_residual(gray, K, w2c, depth, S, s, gaps=(1, 2, 4), fb_px=1.0):
     bw = [_flow.dis_flow(gray[f + 1], gray[f], "medium") for f in range(F - 1)]
     xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
 
+    def fb_ok(a, b):
+        e = a + cv2.remap(b, xs + a[..., 0], ys + a[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return (np.hypot(e[..., 0], e[..., 1]) < fb_px + 0.05 * np.hypot(a[..., 0], a[..., 1])).astype(np.float32)
+
+    return fw, bw, [fb_ok(fw[f], bw[f]) for f in range(F - 1)], [fb_ok(bw[f], fw[f]) for f in range(F - 1)]
+
+
+def _multigap_residual(flows, K, w2c, depth, S, s, gaps=(1, 2, 4)):
+    """Normalised residual (max of rigid-flow and Sampson) over frame gaps ±``gaps`` -> [F,h,w].
+
+    ``flows`` from :func:`_pair_flows`. Flow to t±k is the chain of the one-frame DIS flows
+    (one-frame flow is reliable on repetitive texture where a direct k-frame flow is not); a
+    pixel counts for gap k only while every step is forward-backward consistent and stays in
+    the image (occlusions and out-of-view points excluded). Each gap's residual is divided by
+    its per-frame robust scale (median + 1.4826 MAD, at least RIGID_FLOOR / SAMPSON_FLOOR px per
+    frame of gap), the max of the two is taken per pixel and the valid gaps are averaged.
+    """
+    import cv2
+
+    fw, bw, okf, okb = flows
+    F = len(fw) + 1
+    h, w = fw[0].shape[:2]
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+
     def samp(img, d):
         return cv2.remap(img, xs + d[..., 0], ys + d[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
-    def fb_ok(a, b):
-        e = a + samp(b, a)
-        return (np.hypot(e[..., 0], e[..., 1]) < fb_px + 0.05 * np.hypot(a[..., 0], a[..., 1])).astype(np.float32)
-
-    okf = [fb_ok(fw[f], bw[f]) for f in range(F - 1)]
-    okb = [fb_ok(bw[f], fw[f]) for f in range(F - 1)]
     Ks = np.einsum("ij,fjk->fik", S, K); Kinv = np.linalg.inv(Ks); c2w = np.linalg.inv(w2c)
     pix = np.stack([xs + 0.5, ys + 0.5, np.ones_like(xs)], -1)  # continuous coords
     num = np.zeros((F, h, w), np.float32); den = np.zeros((F, h, w), np.float32)
     for f in range(F):
         rays = _affine3(Kinv[f].astype(np.float32), np.zeros(3, np.float32), pix)
         X = rays * cv2.resize(depth[f].astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)[..., None]
+        obs = []  # (gap k, target frame g, chained flow, valid)
         for sgn in (1, -1):
             acc = np.zeros((h, w, 2), np.float32); ok = np.ones((h, w), bool); g = f
             for k in range(1, max(gaps) + 1):
@@ -142,30 +158,80 @@ def _multigap_residual(gray, K, w2c, depth, S, s, gaps=(1, 2, 4), fb_px=1.0):
                 acc = acc + fl; ok &= o > 0.99; g += sgn
                 if k not in gaps:
                     continue
-                rel = w2c[g] @ c2w[f]
                 v = ok & (xs + acc[..., 0] >= 0) & (xs + acc[..., 0] <= w - 1) & (ys + acc[..., 1] >= 0) & (ys + acc[..., 1] <= h - 1)
-                if v.sum() < 0.05 * v.size:
-                    continue
-                z = 0.0
-                t = rel[:3, 3]
-                tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-                for kind, floor in (("rigid", RIGID_FLOOR), ("sampson", SAMPSON_FLOOR)):
-                    if floor is None:
-                        continue
-                    if kind == "rigid":
-                        d = acc - _rigid_flow(X, Ks[g], rel, pix)
-                        r = np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
-                    else:
-                        r = _sampson_fast(acc, Kinv[g].T @ tx @ rel[:3, :3] @ Kinv[f], pix)
-                    rv = r[v][::4]; med = np.median(rv); mad = 1.4826 * np.median(np.abs(rv - med))
-                    z = np.maximum(z, r / max(med + mad, floor * s * k))
-                num[f] += np.where(v, z, 0); den[f] += v
+                if v.sum() >= 0.05 * v.size:
+                    obs.append((k, g, acc, v))
+        for k, g, acc, v in obs:
+            rel = w2c[g] @ c2w[f]
+            t = rel[:3, 3]
+            tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+            d = acc - _rigid_flow(X, Ks[g], rel, pix)
+            z = 0.0
+            for r, floor in ((np.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2), RIGID_FLOOR),
+                             (_sampson_fast(acc, Kinv[g].T @ tx @ rel[:3, :3] @ Kinv[f], pix), SAMPSON_FLOOR)):
+                rv = r[v][::4]; med = np.median(rv); mad = 1.4826 * np.median(np.abs(rv - med))
+                z = np.maximum(z, r / max(med + mad, floor * s * k))
+            num[f] += np.where(v, z, 0); den[f] += v
     return num / np.maximum(den, 1e-6)
 
 
+def _refill(frames, depth, dyn, S, max_width):
+    """``depth`` re-densified from its static part only -> [F,H,W].
+
+    Every working-resolution pixel with ``dyn < 0.5`` is an anchor of :func:`depth.densify`
+    (the same edge-aware fill the ``sparse`` depth prior uses), the mask carries none: inside it
+    the depth comes from the static surroundings, no longer from the anchors that sat on a moving
+    object (a slowly moving object often triangulates as static) and leaked from there onto the
+    background around it.
+    """
+    from .depth import densify
+
+    F, H, W = depth.shape
+    h, w = int(round(H * S[1, 1])), int(round(W * S[0, 0]))
+    ys, xs = np.mgrid[0:h, 0:w]
+    u, v = (xs + 0.5) / S[0, 0], (ys + 0.5) / S[1, 1]  # continuous full-resolution coords
+    iu, iv = np.clip(u.astype(int), 0, W - 1), np.clip(v.astype(int), 0, H - 1)
+    out = np.empty((F, H, W), np.float32)
+    for f in range(F):
+        d = depth[f, iv, iu]
+        sel = (dyn[f, iv, iu] < 0.5) & (d > 0)
+        out[f] = densify(frames[f], np.stack([u[sel], v[sel], d[sel]], 1), max_width)[0] if sel.sum() >= 3 else depth[f]
+    return out
+
+
+def _segment(sc, t_win=5, lo=1.5, hi=4.0, close_px=15, trim_px=7):
+    """Normalised residual [F,h,w] -> soft mask [F,h,w] (temporal box, hysteresis, morphology)."""
+    import cv2
+
+    F = len(sc)
+    r = t_win // 2  # temporal box over t_win frames
+    pad = np.concatenate([sc[:1]] * r + [sc] + [sc[-1:]] * r)
+    sc = np.mean([pad[i:i + F] for i in range(2 * r + 1)], 0)
+
+    def ell(d):
+        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (max(3, int(d) | 1),) * 2)
+
+    out = np.empty_like(sc)
+    for f in range(F):
+        x = cv2.GaussianBlur(sc[f], (5, 5), 0)
+        b = _hysteresis(x > lo, x > hi).astype(np.uint8)
+        b = cv2.morphologyEx(b, cv2.MORPH_CLOSE, ell(close_px))
+        b = cv2.morphologyEx(b, cv2.MORPH_OPEN, ell(5))
+        b = _fill_holes(b)
+        if trim_px:  # DIS smears object motion a few px into the background
+            b = cv2.erode(b, ell(trim_px))
+        out[f] = cv2.GaussianBlur(b.astype(np.float32), (5, 5), 0)
+    return out
+
+
 def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, tex_eps=1e-3, reporter=None,
-                gaps=(1, 2, 4), lo=1.5, hi=4.0, t_win=5, close_px=15, trim_px=7):
-    """Weight-free motion prior (see module docstring) -> float32 [F,H,W]."""
+                gaps=(1, 2, 4), lo=1.5, hi=4.0, t_win=5, close_px=15, trim_px=7, passes=2):
+    """Weight-free motion prior (see module docstring) -> float32 [F,H,W].
+
+    With depth, ``passes`` segmentations (mask -> depth -> mask): each one after the first
+    recomputes the residual on the depth re-densified from the static part of the previous mask
+    (:func:`_refill`); the flows are computed once.
+    """
     import cv2
 
     F, H, W, _ = frames.shape
@@ -174,27 +240,16 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
     S = np.diag([w / W, h / H, 1.0])  # K at working resolution (continuous coords scale exactly)
     out = np.zeros((F, H, W), np.float32)
     if depth is not None and F >= 2:
-        sc = _multigap_residual(gray, K, w2c, depth, S, s, gaps)
-        if reporter is not None:
-            reporter.progress("dynamic_mask", F // 2, F)
-        r = t_win // 2  # temporal box over t_win frames
-        pad = np.concatenate([sc[:1]] * r + [sc] + [sc[-1:]] * r)
-        sc = np.mean([pad[i:i + F] for i in range(2 * r + 1)], 0)
-        def ell(d):
-            return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (max(3, int(d) | 1),) * 2)
-        for f in range(F):
-            x = cv2.GaussianBlur(sc[f], (5, 5), 0)
-            b = _hysteresis(x > lo, x > hi).astype(np.uint8)
-            b = cv2.morphologyEx(b, cv2.MORPH_CLOSE, ell(close_px))
-            b = cv2.morphologyEx(b, cv2.MORPH_OPEN, ell(5))
-            b = _fill_holes(b)
-            if trim_px:  # DIS smears object motion a few px into the background
-                b = cv2.erode(b, ell(trim_px))
-            p = cv2.GaussianBlur(b.astype(np.float32), (5, 5), 0)
-            out[f] = cv2.resize(p, (W, H), interpolation=cv2.INTER_LINEAR)
+        flows = _pair_flows(gray)
+        npass = max(1, int(passes))
+        for i in range(npass):
+            if i:
+                depth = _refill(frames, depth, out, S, max_width)
+            m = _segment(_multigap_residual(flows, K, w2c, depth, S, s, gaps), t_win, lo, hi, close_px, trim_px)
+            out = np.clip(np.stack([cv2.resize(x, (W, H), interpolation=cv2.INTER_LINEAR) for x in m]), 0, 1)
             if reporter is not None:
-                reporter.progress("dynamic_mask", F // 2 + (f + 1) * (F - F // 2) // F, F)
-        return np.clip(out, 0, 1).astype(np.float32)
+                reporter.progress("dynamic_mask", (i + 1) * F // npass, F)
+        return out.astype(np.float32)
     res = np.zeros((F, h, w), np.float32)
     for f in range(F):
         nbrs = [g for g in (f - 1, f + 1) if 0 <= g < F]

@@ -39,8 +39,11 @@ def square_center(f):
     return np.array([0.3, -0.1]) + SQ_VEL * f
 
 
-def render(F=F, seed=0):
-    """Returns frames uint8 [F,H,W,3], depth [F,H,W], mask [F,H,W] bool, K, w2c."""
+def render(F=F, seed=0, moving=True):
+    """Returns frames uint8 [F,H,W,3], depth [F,H,W], mask [F,H,W] bool, K, w2c.
+
+    ``moving=False``: the square stays at its frame-0 place (a static object in front of the
+    plane; the mask is then all False)."""
     K, w2c = cameras(F)
     bg, fg = _texture(seed), _texture(seed + 1)
     xs, ys = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
@@ -55,7 +58,7 @@ def render(F=F, seed=0):
         img = cv2.remap(bg, (Xb * tex_scale + 512).astype(np.float32), (Yb * tex_scale + 512).astype(np.float32),
                         cv2.INTER_LINEAR)
         Xs, Ys = cx + rx * Z_SQ, ry * Z_SQ
-        c = square_center(f)
+        c = square_center(f if moving else 0)
         lx, ly = Xs - c[0], Ys - c[1]
         m = (np.abs(lx) < SQ_HALF) & (np.abs(ly) < SQ_HALF)
         sq = cv2.remap(fg, (lx * tex_scale + 512).astype(np.float32), (ly * tex_scale + 512).astype(np.float32),
@@ -63,7 +66,7 @@ def render(F=F, seed=0):
         img = np.where(m[..., None], sq, img)
         frames[f] = np.clip(img * 255 + 0.5, 0, 255).astype(np.uint8)
         depth[f] = np.where(m, Z_SQ, Z_BG)
-        mask[f] = m
+        mask[f] = m & moving
     return frames, depth, mask, K, w2c
 
 

@@ -152,3 +152,42 @@ def test_dynamic_prior_removes_anchors(clip, tracks):
     d, _ = estimate_depth(frames, K, w2c, tracks=tracks, dynamic=dyn)
     # the moving square has no anchors: filled from the surrounding static depth
     assert np.abs(d[mask] - scene.Z_BG).mean() < 0.5
+
+
+def test_motion_mask_static_scene_flags_nothing():
+    """A static square in front of the textured plane, moving camera: parallax only, nothing moves.
+    With the exact depth and with the sparse depth from tracks, < 1 % of the pixels are flagged."""
+    frames, depth, mask, K, w2c = scene.render(moving=False)
+    assert not mask.any()
+    assert (dynamic_mask(frames, K, w2c, depth=depth) > 0.5).mean() < 0.01
+    d, _ = estimate_depth(frames, K, w2c, tracks=track_points(frames, num_points=600))
+    assert (dynamic_mask(frames, K, w2c, depth=d) > 0.5).mean() < 0.01
+
+
+def test_motion_mask_refill_pass_undoes_leaked_depth(clip):
+    """The moving square's depth leaked 8 px onto the plane around it (what the sparse fill does
+    when a moving object carries anchors). The mask -> depth -> mask pass re-densifies the depth
+    from the static part of the first mask and flags less of that ring (measured: ring 0.69 ->
+    0.58, IoU 0.51 -> 0.56)."""
+    from engine.priors.motion import motion_mask
+
+    frames, depth, mask, K, w2c = clip
+    ring = np.stack([cv2.dilate(m.astype(np.uint8), np.ones((17, 17), np.uint8)) > 0 for m in mask]) & ~mask
+    leaked = np.where(ring | mask, np.float32(scene.Z_SQ), depth).astype(np.float32)
+    res = {}
+    for passes in (1, 2):
+        pred = motion_mask(frames, K, w2c, leaked, passes=passes) > 0.5
+        res[passes] = ((pred & mask).sum((1, 2)) / (pred | mask).sum((1, 2)), pred[ring].mean())
+    assert res[2][0].min() >= 0.5 and res[2][0].mean() >= res[1][0].mean() + 0.03, res
+    assert res[2][1] <= res[1][1] - 0.05, res
+
+
+def test_refill_fills_mask_from_static_surroundings():
+    from engine.priors.motion import _refill
+
+    frames, depth, mask, K, w2c = scene.render(F=2)
+    bumped = np.where(mask, np.float32(1.0), depth).astype(np.float32)  # wrong depth inside the mask
+    out = _refill(frames, bumped, mask.astype(np.float32), np.eye(3), 320)
+    assert out.shape == depth.shape and np.isfinite(out).all()
+    assert np.abs(out[mask] - scene.Z_BG).mean() < 0.1 * scene.Z_BG  # filled from the plane around
+    assert np.abs(out[~mask] - depth[~mask]).mean() < 0.01 * scene.Z_BG
