@@ -388,7 +388,11 @@ _BT, _BLAST, _BB, _GR, _GG, _GB, _GD, _GA = (np.uint64(i * NPAD) for i in range(
 U0 = np.uint64(0)
 U8 = np.uint64(8)
 LANE = np.arange(8).astype(np.float32)  # lane offsets 0..7 (a frozen constant in the kernels)
-EXP_C = tuple(np.float32(1.0 / math.factorial(i)) for i in range(8))
+# exp(y) on y in [-0.5, 0]: degree-5 least-squares fit on 200 Chebyshev nodes (float64
+# relative error 1.3e-8; as accurate in float32 as the degree-7 Taylor series it replaced,
+# two FMAs and two constants fewer per lane).
+EXP_C = tuple(np.float32(c) for c in (0.9999999915790986, 0.9999987794480075, 0.4999712582985454,
+                                      0.1664180017221641, 0.040685229191972684, 0.006506926459413055))
 SIXTEENTH = np.float32(1.0 / 16.0)
 SIG_MAX = np.float32(8.0)
 
@@ -397,13 +401,11 @@ SIG_MAX = np.float32(8.0)
 def _exp_neg(s):
     """``exp(-s)`` for ``s`` in ``[0, 8]`` (clamped), float32, vectorisable.
 
-    ``exp(-s) = exp(-s/16)^16``: a degree-7 Taylor polynomial on ``[0, 0.5]`` (truncation
-    < 3e-9 relative before the four squarings, ~1e-6 after). Callers only need it where
-    ``alpha >= 1/255``, i.e. ``s <= ln 255 < 5.6``."""
+    ``exp(-s) = exp(-s/16)^16``: a degree-5 polynomial (EXP_C) for ``exp`` on
+    ``[-0.5, 0]`` (1.3e-8 relative before the four squarings, ~2e-6 in float32 after).
+    Callers only need it where ``alpha >= 1/255``, i.e. ``s <= ln 255 < 5.6``."""
     y = -min(max(s, F0), SIG_MAX) * SIXTEENTH
-    e = EXP_C[7]
-    e = e * y + EXP_C[6]
-    e = e * y + EXP_C[5]
+    e = EXP_C[5]
     e = e * y + EXP_C[4]
     e = e * y + EXP_C[3]
     e = e * y + EXP_C[2]
