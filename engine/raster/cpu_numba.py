@@ -14,9 +14,15 @@ Pipeline (forward)::
     raster_forward    prange over tiles: front-to-back compositing with early stop
 
 Backward mirrors it: ``raster_backward`` walks each tile's list in reverse (as in 3DGS),
-recovering the transmittance by division, writes per-instance gradients, which
-``sum_instances`` sums per Gaussian (prange over Gaussians, no write conflicts);
-``project_backward`` chains them to the 3D parameters. Semantics are those of :mod:`engine.raster.reference`.
+recovering the transmittance by division, and writes per-instance gradients in
+Gaussian-major order, which ``sum_instances`` sums per Gaussian (prange over Gaussians,
+contiguous rows, no write conflicts); ``project_backward`` chains them to the 3D
+parameters. Semantics are those of :mod:`engine.raster.reference`.
+
+Where the time goes (200k Gaussians at 512x512, one thread, CPU ms on a loaded machine):
+raster_backward ~105, raster_forward ~34, bin_tiles ~50 (per-tile sort ~13, copy of the
+records into tile order ~15, both cache-miss bound), project_backward ~18,
+project_forward ~11, sum_instances ~3.
 """
 
 from __future__ import annotations
@@ -49,7 +55,7 @@ TILE = 16
 TILE_CHUNK = 4
 # Binning splits the Gaussians into at most MAX_BIN_CHUNKS chunks of >= BIN_CHUNK (each
 # chunk has its own tile counts and cursors; few enough that the prefix sums stay tiny).
-BIN_CHUNK = 8192
+BIN_CHUNK = 2048
 MAX_BIN_CHUNKS = 16
 
 
@@ -61,6 +67,7 @@ def tile_loop(kernel, *args):
         return kernel(*args)
     finally:
         set_parallel_chunksize(prev)
+
 
 _JIT = dict(cache=True, error_model="numpy", nogil=True)
 
