@@ -9,11 +9,18 @@ consistent and stays in view. Per gap two residuals, each divided by its per-fra
 depth-free Sampson distance to the epipolar geometry (depth inside moving objects carries no
 anchors and is filled from the static surroundings, which can cancel most of the residual —
 the epipolar test does not depend on it). The per-pixel max of the two is averaged over the valid
-gaps, averaged over ``t_win`` (5) frames, then segmented per frame: 5×5 blur, hysteresis
+gaps, down-weighted where the image has no texture (``e/(e+tex_eps)`` as below: DIS flow is
+unreliable there), averaged over ``t_win`` (5) frames, then segmented per frame: 5×5 blur, hysteresis
 (``lo`` 1.5 / ``hi`` 4, in robust-scale units), closing (``close_px``), opening, filling of holes
 enclosed by the region (< 25 % of the image: slowly moving interiors such as a waving flag only
 show motion on their border), erosion by ``trim_px`` (DIS smears motion a few pixels into the
-background) and a 5×5 blur. Structuring sizes are in working-resolution px.
+background), a 5×5 blur and a guided filter with the RGB frame as guide (radius ``trim_px``,
+eps 1e-3: the mask edge snaps to the image edge). Structuring sizes are in working-resolution px.
+Then ``passes`` (2) = one mask -> depth -> mask pass: the depth is re-densified from its static
+part only (every working pixel outside the mask is an anchor of the sparse prior's edge-aware
+fill; inside the mask it is filled from the static surroundings, no longer from anchors that sat
+on a moving object and leaked from there onto the background around it) and the residual is
+recomputed on it with the same flows.
 Without depth (per-pixel, previous algorithm): Sampson residual to f±1, down-weighted by
 ``e/(e+tex_eps)`` where ``e`` is the local gradient energy, normalised robustly per frame
 (``tau = max(min_px, median + k*1.4826*MAD)``), mapped softly to [0,1] (logistic, centre
@@ -199,6 +206,19 @@ def _refill(frames, depth, dyn, S, max_width):
     return out
 
 
+def _texture_weight(gray, tex_eps=1e-3):
+    """``e / (e + tex_eps)`` [h,w], ``e`` = 9×9 mean squared gradient of the grey frame in [0,1].
+
+    DIS flow is unreliable where the image has no texture (it is ~0 or noise there whatever the
+    motion, e.g. a white table top), so the residual there is no evidence of motion: it is
+    down-weighted (moving objects' texture-less interiors are recovered by the hole filling)."""
+    import cv2
+
+    g = gray.astype(np.float32) / 255.0
+    te = cv2.boxFilter(cv2.Sobel(g, cv2.CV_32F, 1, 0) ** 2 + cv2.Sobel(g, cv2.CV_32F, 0, 1) ** 2, -1, (9, 9))
+    return te / (te + tex_eps)
+
+
 def _snap(m, guide, radius, eps=1e-3):
     """Soft masks [F,h,w] snapped to the image edges: guided filter (He et al.) with the RGB frame
     (in [0,1]) as guide, window ``radius`` (the DIS smear width, ``trim_px``): where the frame has
@@ -252,12 +272,14 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
     out = np.zeros((F, H, W), np.float32)
     if depth is not None and F >= 2:
         flows = _pair_flows(gray)
+        texw = np.stack([_texture_weight(x, tex_eps) for x in gray])
         guide = np.stack([cv2.resize(x, (w, h), interpolation=cv2.INTER_AREA) for x in frames]) if (w, h) != (W, H) else frames
         npass = max(1, int(passes))
         for i in range(npass):
             if i:
                 depth = _refill(frames, depth, out, S, max_width)
-            m = _segment(_multigap_residual(flows, K, w2c, depth, S, s, gaps), t_win, lo, hi, close_px, trim_px)
+            sc = _multigap_residual(flows, K, w2c, depth, S, s, gaps) * texw
+            m = _segment(sc, t_win, lo, hi, close_px, trim_px)
             if trim_px:
                 m = _snap(m, guide, trim_px)
             out = np.clip(np.stack([cv2.resize(x, (W, H), interpolation=cv2.INTER_LINEAR) for x in m]), 0, 1)
@@ -273,10 +295,7 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
             rel = w2c[g] @ np.linalg.inv(w2c[f])
             acc.append(_sampson(fl, S @ K[f], S @ K[g], rel))
         res[f] = np.mean(acc, 0) if acc else 0.0
-        # flow is unreliable on texture-less areas (it stays ~0 there): down-weight their residual
-        g = gray[f].astype(np.float32) / 255.0
-        te = cv2.boxFilter(cv2.Sobel(g, cv2.CV_32F, 1, 0) ** 2 + cv2.Sobel(g, cv2.CV_32F, 0, 1) ** 2, -1, (9, 9))
-        res[f] *= te / (te + tex_eps)
+        res[f] *= _texture_weight(gray[f], tex_eps)
         if reporter is not None:
             reporter.progress("dynamic_mask", f + 1, F)
     prob = np.zeros_like(res)

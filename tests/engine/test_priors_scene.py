@@ -39,13 +39,16 @@ def square_center(f):
     return np.array([0.3, -0.1]) + SQ_VEL * f
 
 
-def render(F=F, seed=0, moving=True):
+def render(F=F, seed=0, moving=True, flat=False):
     """Returns frames uint8 [F,H,W,3], depth [F,H,W], mask [F,H,W] bool, K, w2c.
 
     ``moving=False``: the square stays at its frame-0 place (a static object in front of the
-    plane; the mask is then all False)."""
+    plane; the mask is then all False). ``flat``: a texture-less band on the plane
+    (world x in [-1.6, 0], about 38 % of the first frame)."""
     K, w2c = cameras(F)
     bg, fg = _texture(seed), _texture(seed + 1)
+    if flat:
+        bg[:, int(512 - 1.6 * 200):int(512 + 0.0 * 200)] = bg.mean((0, 1))
     xs, ys = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
     rx, ry = (xs - W / 2) / FX, (ys - H / 2) / FX
     frames = np.empty((F, H, W, 3), np.uint8)

@@ -191,3 +191,12 @@ def test_refill_fills_mask_from_static_surroundings():
     assert out.shape == depth.shape and np.isfinite(out).all()
     assert np.abs(out[mask] - scene.Z_BG).mean() < 0.1 * scene.Z_BG  # filled from the plane around
     assert np.abs(out[~mask] - depth[~mask]).mean() < 0.01 * scene.Z_BG
+
+
+def test_motion_mask_ignores_textureless_static_area():
+    """A texture-less band (~38 % of the view) on the static plane, sensor noise sigma 2, moving
+    camera, exact depth: DIS flow there is noise, not motion. Measured: 1.6 % flagged with the
+    texture weight, 25 % without it."""
+    frames, depth, mask, K, w2c = scene.render(moving=False, flat=True)
+    noisy = np.clip(frames + np.random.default_rng(0).normal(0, 2, frames.shape), 0, 255).astype(np.uint8)
+    assert (dynamic_mask(noisy, K, w2c, depth=depth) > 0.5).mean() < 0.05
