@@ -30,7 +30,7 @@ from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
-ALGO_VERSIONS = {"tokens": 1, "tracks": 2, "depth": 1, "dynamic": 3}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 2, "depth": 1, "dynamic": 4}
 
 
 @dataclass
