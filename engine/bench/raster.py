@@ -10,7 +10,8 @@ compositing and the full backward to means/quats/scales/opacities/colours.
 process CPU time (all threads) of one forward+backward: both help read figures taken on a
 shared machine. ``gauss_px_per_s`` = Gaussian-pixel evaluations in one forward (counted over the exact
 per-row spans the CPU kernel visits; for other backends the same count is used) divided by
-``fwd_ms``.
+``fwd_ms``. Each row's worker runs with ``OMP_WAIT_POLICY=PASSIVE`` unless the caller set it,
+like ``python -m engine`` (recorded as ``omp_wait_policy``).
 
 Scene: N Gaussians uniformly in the view frustum at depth 2..6, random rotations, isotropic-ish
 log-normal scales whose projected sigma is about ``0.7 * W / sqrt(N)`` pixels (so image
@@ -154,7 +155,7 @@ def run_one(backend: str, n: int, res: int, repeats: int, device: str | None) ->
     except Exception:  # noqa: BLE001 - counting is informational only
         evals = None
     return {"backend": backend, "gaussians": n, "width": res, "height": res, "threads": torch.get_num_threads(),
-            "device": dev, "fwd_ms": round(fwd_ms, 3), "fwdbwd_ms": round(fb_ms, 3),
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default"), "device": dev, "fwd_ms": round(fwd_ms, 3), "fwdbwd_ms": round(fb_ms, 3),
             "fwdbwd_min_ms": round(min(walls), 3), "fwdbwd_cpu_ms": round(cpus[len(cpus) // 2], 3),
             "first_call_ms": round(first, 1), "peak_rss_mb": round(peak_rss_mb(), 1),
             "gauss_px_evals": evals,
@@ -198,6 +199,11 @@ def run(args) -> list[dict]:
                     cmd += ["--device", args.device]
                 pkg_root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
                 env = dict(os.environ, PYTHONPATH=pkg_root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+                # What `python -m engine` sets (engine/__main__.py): with OpenMP's default active
+                # waiting, idle torch and Numba workers spin between kernels and, on a busy
+                # 2-core machine, starve the thread doing the work (10k@128 measured 160 ms
+                # instead of 29 ms at load 6). Override by setting OMP_WAIT_POLICY yourself.
+                env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
                 proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
                 lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("ROW ")]
                 if proc.returncode != 0 or not lines:
