@@ -142,12 +142,27 @@ def depth_shift_scale_invariant(pred: torch.Tensor, target: torch.Tensor, valid:
         n = p.numel()
         if n < 16:
             return pred.sum() * 0.0
-        a = torch.stack([t, torch.ones_like(t)], dim=1)
-        sol = torch.linalg.lstsq(a, p.unsqueeze(1)).solution.squeeze(1)
-        aligned = sol[0] * target + sol[1]
+        scale, shift = _affine_fit(t, p)
+        aligned = scale * target + shift
         norm = p.median().clamp_min(1e-6)
         weight = valid.to(pred.dtype) / (n * norm)  # mean over valid pixels, / median depth
     return ((pred - aligned).abs() * weight).sum()
+
+
+def _affine_fit(t: torch.Tensor, p: torch.Tensor) -> tuple[float, float]:
+    """``argmin_{s,b} Σ (s t + b − p)²`` for ``t, p [n]``, from the 2x2 normal equations in
+    float64 (deterministic, unlike ``torch.linalg.lstsq`` on the CPU, which reads
+    uninitialised memory once torch no longer NaN-fills allocations -- see the trainer).
+    A constant ``t`` gets the least-norm solution, as a rank-revealing solver would."""
+    t64, p64 = t.double(), p.double()
+    n = float(t64.numel())
+    st, sp = float(t64.sum()), float(p64.sum())
+    stt, stp = float((t64 * t64).sum()), float((t64 * p64).sum())
+    det = n * stt - st * st
+    if det <= 1e-12 * max(n * stt, 1e-300):
+        c, m = st / n, sp / n
+        return c * m / (c * c + 1.0), m / (c * c + 1.0)
+    return (n * stp - st * sp) / det, (stt * sp - st * stp) / det
 
 
 def mask_loss(alpha: torch.Tensor, dyn_alpha: torch.Tensor, fg_prior: torch.Tensor) -> torch.Tensor:

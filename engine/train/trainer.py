@@ -240,10 +240,6 @@ class Trainer:
             # index_put/scatter accumulation is otherwise thread-order dependent; resume
             # must reproduce an uninterrupted run bit for bit
             torch.use_deterministic_algorithms(True, warn_only=True)
-            # ... but not its debugging aid of NaN-filling every torch.empty: that is a
-            # fill_ per allocation (~750 per step, a sixth of the step at 240x180) and
-            # changes no result (nothing reads uninitialised memory)
-            torch.utils.deterministic.fill_uninitialized_memory = False
         self.gen = torch.Generator(device="cpu")
         self.gen.manual_seed(self.cfg.seed)
         self.step = 0
@@ -558,6 +554,13 @@ class Trainer:
         t_start = time.perf_counter()
         self._stop_requested = False
         previous = self._install_stop_handlers()
+        # Deterministic mode NaN-fills every torch.empty (a debugging aid): a fill_ per
+        # allocation, a sixth of the step at 240x180 before the fused kernels. The step
+        # reads no uninitialised memory (torch.linalg.lstsq on the CPU does, so the depth
+        # fit solves its 2x2 normal equations instead), so the loop runs without it; the
+        # previous setting is restored on exit, for code outside the loop.
+        previous_fill = torch.utils.deterministic.fill_uninitialized_memory
+        torch.utils.deterministic.fill_uninitialized_memory = False
         try:
             while self.step < cfg.steps:
                 if self._stop_requested:  # SIGINT/SIGTERM: stop at a step boundary
@@ -615,6 +618,7 @@ class Trainer:
             path = self.save_checkpoint()
             raise Cancelled(f"training stopped at step {self.step}; checkpoint saved to {path}") from None
         finally:
+            torch.utils.deterministic.fill_uninitialized_memory = previous_fill
             self._restore_stop_handlers(previous)
         self.train_seconds += time.perf_counter() - t_start
 
