@@ -20,8 +20,8 @@ contiguous rows, no write conflicts); ``project_backward`` chains them to the 3D
 parameters. Semantics are those of :mod:`engine.raster.reference`.
 
 Where the time goes (200k Gaussians at 512x512, one thread, CPU ms on a loaded machine):
-raster_backward ~105, raster_forward ~34, bin_tiles ~50 (per-tile sort ~13, copy of the
-records into tile order ~15, both cache-miss bound), project_backward ~18,
+raster_backward ~105, raster_forward ~34, bin_tiles ~40 (copy of the records into tile order ~15, cache-miss
+bound; per-tile radix sort), project_backward ~18,
 project_forward ~11, sum_instances ~3.
 """
 
@@ -294,6 +294,41 @@ def _fill(irec, ntile, gstart, tiles_x, cursor, inst_gid):
                         cursor[ch, t] += 1
 
 
+@njit(**_JIT)
+def _radix_sort(keys, vals, tmp_k, tmp_v, hist):
+    """Stable LSD radix sort of ``keys [m]`` int64 (values in ``[0, 2^32)``) carrying
+    ``vals [m]`` int32, in place; ``tmp_k``/``tmp_v`` [m] and ``hist [256]`` are scratch.
+    8-bit digits; a pass whose digit is the same for every key is skipped (depths within
+    one power-of-two range share their top bits). For the few hundred entries of a tile
+    list this takes about half the time of np.sort on (depth, position) keys."""
+    m = keys.shape[0]
+    src_k, src_v, dst_k, dst_v = keys, vals, tmp_k, tmp_v
+    flipped = False
+    for shift in range(0, 32, 8):
+        for d in range(256):
+            hist[d] = 0
+        for i in range(m):
+            hist[(src_k[i] >> shift) & 255] += 1
+        if hist[(src_k[0] >> shift) & 255] == m:
+            continue
+        acc = 0
+        for d in range(256):
+            c = hist[d]
+            hist[d] = acc
+            acc += c
+        for i in range(m):
+            d = (src_k[i] >> shift) & 255
+            dst_k[hist[d]] = src_k[i]
+            dst_v[hist[d]] = src_v[i]
+            hist[d] += 1
+        src_k, src_v, dst_k, dst_v = dst_k, dst_v, src_k, src_v
+        flipped = not flipped
+    if flipped:
+        for i in range(m):
+            keys[i] = src_k[i]
+            vals[i] = src_v[i]
+
+
 @njit(parallel=True, **_JIT)
 def _sort_gather(offsets, inst_gid, tiles_x, depths, rec, irec, data, idata):
     """Per tile (prange): stable depth sort of the list (it arrives in index order, so ties
@@ -305,18 +340,18 @@ def _sort_gather(offsets, inst_gid, tiles_x, depths, rec, irec, data, idata):
         a, b = offsets[t], offsets[t + 1]
         if b <= a:
             continue
-        # Unique int64 keys (depth bits, then position) sort faster than a stable argsort;
-        # positive float32 depths order like their bit patterns.
-        keys = np.empty(b - a, np.int64)
-        for j in range(b - a):
-            d = max(depths[inst_gid[a + j]], F0)  # the dense array: fewer cache misses than rec
-            keys[j] = (np.int64(np.float32(d).view(np.int32)) << 32) | j
-        keys.sort()
+        m = b - a
+        # Keys: the bits of the (positive) float32 depth, which order like the depths.
+        keys = np.empty(m, np.int64)
+        ids = inst_gid[a:b].copy()
+        for j in range(m):
+            d = max(depths[ids[j]], F0)  # the dense array: fewer cache misses than rec
+            keys[j] = np.int64(np.float32(d).view(np.int32))
+        _radix_sort(keys, ids, np.empty(m, np.int64), np.empty(m, np.int32), np.empty(256, np.int64))
         tyi = t // tiles_x
         txi = t - tyi * tiles_x
-        ids = inst_gid[a:b].copy()
-        for j in range(b - a):
-            g = ids[keys[j] & 0xFFFFFFFF]
+        for j in range(m):
+            g = ids[j]
             k = a + j
             inst_gid[k] = g
             for f in range(R_X0):
