@@ -260,3 +260,47 @@ def fused_deform(dq_nodes: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, mea
 def fused_available(*tensors: torch.Tensor) -> bool:
     """The fused path handles CPU float32 tensors."""
     return all(t.device.type == "cpu" and (not t.is_floating_point() or t.dtype == torch.float32) for t in tensors)
+
+
+@njit(parallel=True, **_JIT)
+def _knn(points, nodes_c, nodes_sq, origin, k, out):
+    """``out [G, k]``: the ``k`` nodes with the smallest ``|c|² − 2 p·c`` per point (centred
+    coordinates, the ranking of :func:`engine.geometry.binding.knn_nodes`), nearest first,
+    ties to the lower node index. One pass over the nodes per point with a sorted
+    ``k``-slot buffer: no ``[G, N]`` score matrix and no top-k over it."""
+    G = points.shape[0]
+    N = nodes_c.shape[0]
+    for g in prange(G):
+        px = points[g, 0] - origin[0]
+        py = points[g, 1] - origin[1]
+        pz = points[g, 2] - origin[2]
+        best = np.empty(k, np.float32)
+        bidx = np.empty(k, np.int64)
+        for m in range(k):
+            best[m] = np.inf
+            bidx[m] = 0
+        for j in range(N):
+            s = nodes_sq[j] - np.float32(2.0) * (px * nodes_c[j, 0] + py * nodes_c[j, 1] + pz * nodes_c[j, 2])
+            if s < best[k - 1]:
+                m = k - 1
+                while m > 0 and s < best[m - 1]:
+                    best[m] = best[m - 1]
+                    bidx[m] = bidx[m - 1]
+                    m -= 1
+                best[m] = s
+                bidx[m] = j
+        for m in range(k):
+            out[g, m] = bidx[m]
+
+
+def fused_knn(points: torch.Tensor, nodes: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices ``[G, k]`` (long) of the ``k`` nearest ``nodes [N, 3]`` of ``points [G, 3]``
+    (CPU float32), nearest first: the ranking of ``engine.geometry.binding.knn_nodes`` in
+    one Numba pass (the binding refresh runs it at every densification / rebind step)."""
+    origin = nodes.mean(0)
+    nodes_c = nodes - origin
+    nodes_sq = (nodes_c * nodes_c).sum(-1)
+    out = np.empty((points.shape[0], k), np.int64)
+    with kernel_threads():
+        _knn(_f32(points), _f32(nodes_c), _f32(nodes_sq), _f32(origin), int(k), out)
+    return torch.from_numpy(out)

@@ -69,3 +69,16 @@ def test_fused_deform_points_matches_reference():
             M.FUSED_DEFORM = old
     for r, f in zip(*outs):
         assert torch.allclose(r, f, atol=1e-5 * (1 + float(r.abs().max())), rtol=1e-4)
+
+
+def test_fused_knn_matches_geometry_knn():
+    """The binding refresh's Numba K-NN ranks nodes like engine.geometry.binding.knn_nodes."""
+    from engine.geometry.binding import knn_nodes
+    from engine.train.fused import fused_knn
+
+    torch.manual_seed(3)
+    pts = torch.randn(5000, 3) * 2 + 40.0  # far from the origin: the centred ranking matters
+    nodes = torch.randn(300, 3) * 2 + 40.0
+    ref, _ = knn_nodes(pts, nodes, 4)
+    assert torch.equal(fused_knn(pts, nodes, 4), ref)
+    assert torch.equal(fused_knn(pts, nodes, 4), fused_knn(pts, nodes, 4))
