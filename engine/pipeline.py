@@ -113,8 +113,15 @@ def node_arrays_from(nodeset) -> B.NodeArrays:
 # ----------------------------------------------------------------------------------
 # Stages
 # ----------------------------------------------------------------------------------
-def open_clip(path, reporter: Reporter | None = None, solve: bool = True, **options):
-    """Read a clip (any supported layout); solve cameras with COLMAP when it has none."""
+def open_clip(path, reporter: Reporter | None = None, solve: bool = True, fov_deg: float | None = None, **options):
+    """Read a clip (any supported layout); solve cameras with COLMAP when it has none.
+
+    The solve (:func:`engine.io.solve.solve_cameras`) sees at most 60 evenly spaced frames (the others get
+    interpolated poses), masks moving regions with the motion prior, retries with global SfM when
+    incremental SfM cannot initialise (a panning camera), and falls back to a fixed-centre camera
+    (static or rotation-only, ``fov_deg`` across the long side, default 60) with a warning when the
+    footage has no usable parallax.
+    """
     from .io import load_clip
 
     clip = load_clip(path, **options)
@@ -125,7 +132,8 @@ def open_clip(path, reporter: Reporter | None = None, solve: bool = True, **opti
 
         if reporter is not None:
             reporter.log("no cameras in the clip: solving them with COLMAP (CPU)")
-        clip = solve_cameras(clip)
+        clip = solve_cameras(clip, sample_frames=60, auto_masks=True, global_retry=True, static_fallback=True,
+                             fov_deg=fov_deg, reporter=reporter)
     clip.validate_cameras()
     return clip
 

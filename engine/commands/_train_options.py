@@ -20,6 +20,9 @@ def add_clip_options(parser):
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"))
     parser.add_argument("--backend", choices=("auto", "reference", "cpu", "gsplat"), help="rasteriser backend")
     parser.add_argument("--scale", type=int, default=None, help="dataset downscale folder (Nerfies rgb/{1,2,4}x)")
+    parser.add_argument("--fov", type=float, default=None,
+                        help="lens field of view in degrees across the long image side, for clips without cameras "
+                             "(focal prior of the camera solve; default 60)")
     parser.add_argument("--cache", help="priors cache folder (default: <out>/cache)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing bundle in --out")
     pri = parser.add_argument_group("priors (ONNX models and precomputed files; all optional)")
@@ -73,4 +76,7 @@ def prior_config_from_args(args):
 
 
 def clip_options(args) -> dict:
-    return {"scale": args.scale} if args.scale else {}
+    out = {"scale": args.scale} if args.scale else {}
+    if getattr(args, "fov", None):
+        out["fov_deg"] = args.fov
+    return out
