@@ -356,6 +356,7 @@ def solve_cameras(clip: Clip, masks=None, *, max_size: int = 320, max_frames: in
         iopt.mapper.abs_pose_max_error = float(abs_pose_max_error)
         iopt.mapper.filter_max_reproj_error = float(filter_max_reproj_error)
         iopt.triangulation.random_seed = int(seed)
+        _seed_all(iopt, int(seed))
         iopt.ba_refine_focal_length = bool(refine_focal)
         iopt.mapper.abs_pose_refine_focal_length = bool(refine_focal)
         iopt.triangulation.min_angle = float(tri_min_angle)
@@ -378,6 +379,7 @@ def solve_cameras(clip: Clip, masks=None, *, max_size: int = 320, max_frames: in
             gopt.mapper.random_seed = int(seed)
             gopt.mapper.bundle_adjustment.refine_focal_length = False
             gopt.mapper.global_positioning.use_gpu = False
+            _seed_all(gopt, int(seed))
             gopt.mapper.bundle_adjustment.ceres.use_gpu = False
             out2 = work / "sparse_global"
             out2.mkdir(exist_ok=True)
@@ -555,3 +557,18 @@ def _solve_sampled(clip: Clip, masks, n: int, kw: dict) -> Clip:
                               scene_scale=sub.scene_scale, meta=meta)
     out.validate_cameras()
     return out
+
+
+def _seed_all(opts, seed: int, depth: int = 0) -> None:
+    """Set every ``random_seed`` field of a pycolmap options object and its nested option groups."""
+    for name in dir(opts):
+        if name.startswith("_") or depth > 4:
+            continue
+        try:
+            val = getattr(opts, name)
+        except Exception:  # noqa: BLE001 - properties that cannot be read
+            continue
+        if name == "random_seed":
+            setattr(opts, name, seed)
+        elif hasattr(val, "summary") and not callable(val) and type(val).__module__.startswith("pycolmap"):
+            _seed_all(val, seed, depth + 1)

@@ -176,12 +176,12 @@ def test_parallax_clip_still_solves_with_fallback_enabled(tmp_path):
 def test_real_clips_pan_solves_and_near_static_falls_back():
     """bedroom.mp4 (handheld pan, two children): global SfM registers the frames with sub-pixel error;
     cups.mp4 (near-static camera, hands): no SfM initialisation -> fixed-centre fallback with a warning."""
-    opts = dict(max_size=320, auto_masks=True, global_retry=True, static_fallback=True)
+    opts = dict(max_size=320, auto_masks=True, global_retry=True, static_fallback=True, num_threads=1)  # 1: reproducible
     rep = _Log()
-    bed = solve_cameras(load_clip(SHARED / "bedroom.mp4", frame_step=8, max_frames=25), reporter=rep, **opts)
+    bed = solve_cameras(load_clip(SHARED / "bedroom.mp4", frame_step=3, max_frames=40), reporter=rep, **opts)
     info = bed.meta["solve"]
-    assert info["model"] == "sfm" and info["num_registered"] >= 20, info
-    assert info["mean_reproj_error"] < 1.0 and info["num_points"] >= 20
+    assert info["model"] == "sfm" and info["num_registered"] >= 36, info  # measured 40/40, 0.54 px, 60 points
+    assert info["mean_reproj_error"] < 1.0 and info["num_points"] >= 10
     assert not any(lvl == "warning" for lvl, _ in rep.messages)
     rep = _Log()
     cups = solve_cameras(load_clip(SHARED / "cups.mp4", frame_step=12, max_frames=25), reporter=rep, **opts)
