@@ -401,9 +401,16 @@ def solve_cameras(clip: Clip, masks=None, *, max_size: int = 320, max_frames: in
                "or the scene lacks texture)." if rec is None else
                f"camera solve registered only {nreg} of {F} frames (need {need}).")
         if static_fallback:
-            why += " " + _parallax_summary(pairs)
-            return fixed_centre_cameras(clip, small, pairs, fov_deg=fov_deg, reason=why, reporter=reporter,
-                                        solve_scale=s)
+            fb = fixed_centre_cameras(clip, small, pairs, fov_deg=fov_deg, reason=why + " " + _parallax_summary(pairs),
+                                      solve_scale=s, emit=False)
+            if fb.meta["solve"]["num_registered"] >= need:
+                msg = fb.meta["solve"]["warning"]
+                log.warning(msg)
+                if reporter is not None:
+                    reporter.log(msg, level="warning")
+                return fb
+            why += (f" The fixed-centre (static / rotating camera) model does not fit either: only "
+                    f"{fb.meta['solve']['num_registered']} of {F} frames link to their neighbour by a homography.")
         raise InputError(why, clip.source, fix)
     try:
         rnames, K, w2c_r, dist_r, _ = reconstruction_cameras(rec)
@@ -447,7 +454,7 @@ def _kabsch_rotation(u, v):
 
 def fixed_centre_cameras(clip: Clip, small, pairs, *, fov_deg: float | None = None, reason: str = "",
                          reporter=None, solve_scale: float = 1.0, min_inliers: int = 15, inlier_px: float = 1.0,
-                         rotation_min_deg: float = 0.1) -> Clip:
+                         rotation_min_deg: float = 0.1, emit: bool = True) -> Clip:
     """Low-parallax fallback: every frame shares one camera centre (the world origin).
 
     Intrinsics: a centred pinhole with ``fov_deg`` (default :data:`DEFAULT_FOV_DEG`) across the long
@@ -517,9 +524,11 @@ def fixed_centre_cameras(clip: Clip, small, pairs, *, fov_deg: float | None = No
            f"({int(registered.sum())}/{F} frames linked, mean transfer error {err:.2f} px). Depth cannot be "
            "measured from a fixed viewpoint, so geometry will be weak. For real cameras, track the camera in "
            "Blender and export a clip manifest, pass a COLMAP model, or set the lens with --fov.")
-    log.warning(msg)
-    if reporter is not None:
-        reporter.log(msg, level="warning")
+    meta["solve"]["warning"] = msg
+    if emit:
+        log.warning(msg)
+        if reporter is not None:
+            reporter.log(msg, level="warning")
     out = dataclasses.replace(clip, K=np.tile(K, (F, 1, 1)), w2c=w2c, dist=None, points=None, point_colors=None,
                               scene_center=np.zeros(3), scene_scale=1.0, meta=meta)
     out.validate_cameras()

@@ -190,3 +190,17 @@ def test_real_clips_pan_solves_and_near_static_falls_back():
     assert info["mean_reproj_error"] < 1.5  # transfer error of the fixed-centre model, full-res px
     assert np.isfinite(cups.w2c).all() and np.allclose(cups.camera_centers(), 0.0, atol=1e-9)
     assert any(lvl == "warning" and "--fov" in m for lvl, m in rep.messages)
+
+
+def test_textureless_clip_fails_clearly_even_with_fallback(tmp_path):
+    paths = []
+    rng = np.random.default_rng(0)
+    for i in range(5):
+        p = tmp_path / f"{i:03d}.png"
+        cv2.imwrite(str(p), np.full((90, 120, 3), 128, np.uint8) + rng.integers(0, 2, (90, 120, 3), dtype=np.uint8))
+        paths.append(p)
+    clip = Clip(frames=FrameSource(paths=paths), width=120, height=90, fps=24.0, times=times_from_count(5),
+                frame_ids=[p.name for p in paths], source=tmp_path)
+    with pytest.raises(InputError, match="does not fit") as e:
+        solve_cameras(clip, max_features=200, static_fallback=True, auto_masks=True, global_retry=True)
+    assert "Supply cameras" in e.value.fix and e.value.path
