@@ -1,26 +1,56 @@
 """Camera solve for clips without cameras (pycolmap on the CPU), and Umeyama alignment.
 
-Pipeline (:func:`solve_cameras`):
+Pipeline (:func:`solve_cameras`; ``engine.pipeline.open_clip`` turns on everything marked *pipeline*):
 
+0. *pipeline*: at most ``sample_frames`` (60) evenly spaced frames are solved; the others get
+   interpolated poses (:func:`interpolate_poses`) and ``registered = False``.
 1. Frames are resized so the long side is at most ``max_size`` (default 320 px) and written
    as PNGs to a temporary folder (320 px by default: on the synthetic test room a 60-frame
    640x480 clip solves in ~55 s at 320 px but fails to register at 640 px). With ``masks`` (per frame ``float [H,W]`` in ``[0,1]``,
    1 = dynamic) a COLMAP feature mask is written per frame: pixels with mask ≥ 0.5
    (dilated by ``mask_dilate`` px) get no features, so moving objects do not drive the solve.
+   *pipeline* ``auto_masks``: without masks, they come from the motion prior's depth-free path
+   (:func:`engine.priors.motion.motion_mask` with ``depth=None``: Sampson residual of DIS flow) on
+   rough poses — consecutive-frame essential matrices of LK matches, chained, unit translation
+   (the Sampson distance does not depend on its length) — see :func:`camera_free_masks`.
 2. SIFT extraction (``max_features`` per frame), one shared camera for all frames
-   (``camera_model``, default ``SIMPLE_RADIAL``), sequential matching (``overlap`` neighbours).
-3. Incremental mapping (initial-pair triangulation angle ≥ ``init_min_tri_angle``, fixed
-   seed); the largest model is kept.
+   (``camera_model``, default ``SIMPLE_RADIAL``), sequential matching (``overlap`` neighbours),
+   RANSAC seeded. With ``fov_deg`` (or ``global_retry``) the camera gets a focal-length prior:
+   ``fov_deg`` (default :data:`DEFAULT_FOV_DEG` = 60°) across the long side.
+3. Incremental mapping (initial-pair triangulation angle ≥ ``init_min_tri_angle``, every pycolmap
+   ``random_seed`` set to ``seed``); the largest model is kept.
+   *pipeline* ``global_retry``: when too few frames register — a panning handheld camera has
+   sub-pixel parallax between neighbours (bedroom.mp4: a homography explains ~90 % of the matches
+   between frames 30 source frames apart, median parallax 0.2–0.4 px at 320 px), so incremental SfM
+   finds no initial pair or cannot extend it — global SfM (GLOMAP: rotation averaging + global
+   positioning) runs on the same database with the focal length held at the FOV prior (barely
+   observable at low parallax), and the model that registers more frames is kept.
 4. Intrinsics are scaled back to full resolution (``K_full = diag(W/w, H/h, 1) · K_small``;
    distortion coefficients act on normalised coordinates and are unchanged).
+5. *pipeline* ``static_fallback`` (low parallax): if SfM still registers too few frames and
+   consecutive frames are linked by homographies, :func:`fixed_centre_cameras` returns a
+   documented fixed-centre model — one camera centre for all frames (the origin), centred pinhole
+   with ``fov_deg`` across the long side, per-frame rotations from the homography inliers (Kabsch on
+   unit rays, chained; identity rotations = ``model 'static'`` when the whole clip turns by < 0.1°)
+   — and a warning event says what was assumed and how to supply real cameras (Blender camera
+   track + clip manifest, a COLMAP model, or ``--fov``). Depth is unobservable from one centre, so
+   the depth prior is weak on such clips (scale arbitrary, ``scene_scale`` 1, no sparse points).
 
-Registration: if fewer than ``max(3, min_registered · F)`` frames register, an
-:class:`InputError` says so (typical causes: a near-static camera, no texture, or mostly
-moving content) and suggests supplying cameras. Frames that do not register keep their
+Registration: if fewer than ``max(3, min_registered · F)`` frames register (and no fallback
+applies), an :class:`InputError` says so (typical causes: a near-static camera, no texture, or
+mostly moving content) and suggests supplying cameras. Frames that do not register keep their
 place: their poses are **interpolated** (camera centre linearly, rotation by slerp)
 between the nearest registered frames in time, or copied from the nearest one at the ends.
-``clip.meta['solve']`` records ``registered [F] bool``, ``num_registered``,
-``mean_reproj_error`` (px at solve resolution), ``num_points``, ``solve_scale``.
+``clip.meta['solve']`` records ``model`` (``'sfm'`` with ``mapper`` ``'incremental'|'global'``,
+or ``'static'`` / ``'rotation'``), ``registered [F] bool``, ``num_registered``,
+``mean_reproj_error`` (SfM: px at solve resolution; fixed-centre: mean homography transfer error of
+the inlier matches in full-resolution px), ``num_points``, ``solve_scale`` (and for the fallback
+``fov_deg``, ``max_rotation_deg``, ``inlier_fraction``, ``reason``, ``warning``; ``sampled`` frame
+indices when ``sample_frames`` applied).
+
+Results are reproducible with ``num_threads=1``; with 2 threads COLMAP's matching/mapping can
+vary slightly between runs (bedroom.mp4: always 60/60 registered at 0.42–0.45 px, but 18–217
+sparse points).
 
 The solved world frame is COLMAP's (arbitrary similarity); ``scene_center``/``scene_scale``
 come from the sparse points.
@@ -110,7 +140,7 @@ def interpolate_poses(w2c: np.ndarray, registered: np.ndarray, times: np.ndarray
     return out
 
 
-DEFAULT_FOV_DEG = 60.0  # horizontal... of the long image side; a typical phone / camcorder lens
+DEFAULT_FOV_DEG = 60.0  # degrees across the long image side: a typical phone / camcorder lens at 1x
 
 
 def default_K(width: int, height: int, fov_deg: float | None = None) -> np.ndarray:
@@ -245,6 +275,24 @@ def solve_cameras(clip: Clip, masks=None, *, max_size: int = 320, max_frames: in
     log_level : int
         Least severe COLMAP (glog) message shown while solving: 0 info, 1 warning
         (default: COLMAP's per-step INFO lines are hidden), 2 error, 3 fatal only.
+    verify_max_error, init_max_error, abs_pose_max_error, filter_max_reproj_error : float
+        COLMAP RANSAC / mapper thresholds in px at solve resolution (COLMAP defaults).
+    fov_deg : float, optional
+        Lens field of view across the long side: focal prior of the solve and the fallback's ``K``
+        (default :data:`DEFAULT_FOV_DEG` where a prior is needed).
+    peak_threshold, quadratic_overlap, guided, refine_focal, tri_min_angle :
+        SIFT peak threshold, COLMAP's quadratic sequential overlap, guided matching, focal refinement
+        in incremental BA, minimum triangulation angle (degrees) for new/kept points.
+    auto_masks : bool
+        Without ``masks``, mask moving regions with :func:`camera_free_masks` (module doc, step 1).
+    global_retry : bool
+        Retry with global SfM when incremental SfM registers too few frames (step 3).
+    static_fallback : bool
+        Fall back to :func:`fixed_centre_cameras` for low-parallax clips (step 5) instead of failing.
+    sample_frames : int, optional
+        Solve at most this many evenly spaced frames; interpolate the others (step 0).
+    reporter : Reporter, optional
+        Receives ``log`` events (solve summary; the fallback's warning).
 
     Returns
     -------
