@@ -73,7 +73,9 @@ class TrainConfig:
     lr_opacity: float = 5e-2
     lr_sh: float = 2.5e-3
     lr_node_keys: float = 1e-3           # relative to scene extent
+    lr_node_keys_final: float = 1e-5     # spline keys decay log-linearly to this, like the means
     lr_node_rot: float = 1e-3
+    lr_node_rot_final: float = 1e-5
     lr_mlp: float = 1e-3
 
     # densification (3DGS-style, scaled to the run length)

@@ -301,10 +301,18 @@ class Trainer:
             return
         frac = min(self.step / self.cfg.steps, 1.0)
         e = self.model.extent
-        lr = math.exp((1 - frac) * math.log(self.cfg.lr_means * e) + frac * math.log(self.cfg.lr_means_final * e))
+        def decay(a, b):
+            return math.exp((1 - frac) * math.log(a) + frac * math.log(b)) if a > 0 and b > 0 else (1 - frac) * a + frac * b
+
+        # spline keys decay like the Gaussian means (log-linear): at a constant rate the
+        # per-frame photometric noise keeps moving them (static nodes drifted ~3 px), which
+        # blurs everything they carry in the held-out view
+        lrs = {"means": decay(self.cfg.lr_means * e, self.cfg.lr_means_final * e),
+               "pos_keys": decay(self.cfg.lr_node_keys * e, self.cfg.lr_node_keys_final * e),
+               "rot_keys": decay(self.cfg.lr_node_rot, self.cfg.lr_node_rot_final)}
         for group in self.opt.param_groups:
-            if group["name"] == "means":
-                group["lr"] = lr
+            if group["name"] in lrs:
+                group["lr"] = lrs[group["name"]]
 
     # ---------------------------------------------------------------- one step
     def _loss(self, f: int) -> tuple[torch.Tensor, dict]:
