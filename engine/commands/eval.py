@@ -132,6 +132,24 @@ def _open_clip_for(bundle, clip_path):
     return open_clip(path, solve=False), Path(path)
 
 
+def _camera_frame(clip, cam: dict, start: int, path):
+    """The clip frame bundle camera ``cam`` saw, resized to the camera's size: uint8 [H, W, 3].
+
+    Frame numbers follow time (vrig train/held-out pairs share one), so the clip index comes
+    from ``clip_index`` when the bundle recorded it, else from the frame number.
+    """
+    import cv2
+
+    from ..errors import InputError
+
+    i = int(cam["clip_index"]) if "clip_index" in cam else int(cam["frame"]) - start
+    if not 0 <= i < clip.num_frames:
+        raise InputError(f"bundle frame {cam['frame']} is not in the clip ({clip.num_frames} frames)", path,
+                         "pass --clip with the clip this bundle was trained on")
+    w, h = int(cam["width"]), int(cam["height"])
+    return i, cv2.resize(clip.load_frame(i, downscale=1), (w, h), interpolation=cv2.INTER_AREA)
+
+
 def _mask_for(clip, i: int):
     """Dynamic mask ``[H, W] bool`` of clip frame ``i`` at full size, or None."""
     import cv2
@@ -185,13 +203,8 @@ def evaluate_bundle(bundle_dir, clip_path=None, lpips_onnx=None, split: str = "v
     images = []
     with torch.no_grad():
         for n, c in enumerate(cams):
-            # the clip frame this camera saw (frame numbers follow time, so vrig pairs share one)
-            i = int(c["clip_index"]) if "clip_index" in c else int(c["frame"]) - start
-            if not 0 <= i < clip.num_frames:
-                raise InputError(f"bundle frame {c['frame']} is not in the clip ({clip.num_frames} frames)", path,
-                                 "pass --clip with the clip this bundle was trained on")
+            i, gt = _camera_frame(clip, c, start, path)
             w, h = int(c["width"]), int(c["height"])
-            gt = cv2.resize(clip.load_frame(i, downscale=1), (w, h), interpolation=cv2.INTER_AREA)
             means, quats = model.deform(float(c["time"]))
             out = render_scene(model, means, quats, torch.as_tensor(np.asarray(c["K"]), dtype=torch.float32,
                                                                   device=dev),

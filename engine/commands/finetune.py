@@ -60,12 +60,11 @@ def training_views(bundle, clip_path=None, device="cpu", reporter=None) -> list[
     Each view: ``{"frame", "time", "K" [3,3], "w2c" [4,4], "width", "height", "image" [H,W,3]}``
     (tensors on ``device``, image float in [0, 1]).
     """
-    import cv2
     import numpy as np
     import torch
 
     from ..errors import InputError
-    from .eval import _open_clip_for
+    from .eval import _camera_frame, _open_clip_for
 
     cams = [c for c in bundle.scene["cameras"] if c.get("split", "train") == "train"]
     if not cams:
@@ -75,12 +74,8 @@ def training_views(bundle, clip_path=None, device="cpu", reporter=None) -> list[
     start = int(clip.meta.get("frame_start", 1)) if isinstance(clip.meta, dict) else 1
     views = []
     for n, c in enumerate(cams):
-        i = int(c["clip_index"]) if "clip_index" in c else int(c["frame"]) - start
-        if not 0 <= i < clip.num_frames:
-            raise InputError(f"bundle frame {c['frame']} is not in the clip ({clip.num_frames} frames)", path,
-                             "pass --clip with the clip this bundle was trained on")
+        _, img = _camera_frame(clip, c, start, path)
         w, h = int(c["width"]), int(c["height"])
-        img = cv2.resize(clip.load_frame(i, downscale=1), (w, h), interpolation=cv2.INTER_AREA)
         as_t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)  # noqa: E731
         views.append({"frame": int(c["frame"]), "time": float(c["time"]), "K": as_t(c["K"]), "w2c": as_t(c["w2c"]),
                       "width": w, "height": h, "image": as_t(img) / 255.0})

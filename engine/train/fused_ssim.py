@@ -24,29 +24,15 @@ sums, so results are bit-identical run to run.
 
 from __future__ import annotations
 
-import contextlib
 
 import numpy as np
 import torch
 from numba import njit, prange
 
+from ..raster.cpu import kernel_threads  # Numba at torch's thread count, torch at one
+
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 C1, C2 = 0.01 ** 2, 0.03 ** 2
-
-
-@contextlib.contextmanager
-def kernel_threads():
-    """Numba with torch's thread count while torch itself runs one thread (the two
-    OpenMP pools stall each other when both are busy; see engine/raster/cpu.py)."""
-    import numba
-
-    n = torch.get_num_threads()
-    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
 
 
 @njit(inline="always", **_JIT)
