@@ -74,6 +74,10 @@ def main(argv: list[str] | None = None) -> int:
 
         torch.set_num_threads(args.threads)  # the CPU rasteriser follows torch's count
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    # Cancel sends SIGINT first. A process started with SIGINT ignored (a background job of a
+    # non-interactive shell, some launchers) inherits SIG_IGN, and Python then never raises
+    # KeyboardInterrupt: install the default handler explicitly.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         code = args._module.run(args, reporter)
         return int(code or 0)

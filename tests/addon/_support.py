@@ -21,6 +21,7 @@ VENV_PYTHON = REPO / ".venv" / ("Scripts/python.exe" if sys.platform == "win32" 
 _PRELUDE = textwrap.dedent(
     """
     import json, os, signal, sys, time
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # as engine/cli.py does
     def emit(event, **fields):
         payload = {"v": 1, "event": event, "time": time.time()}
         payload.update(fields)

@@ -61,3 +61,19 @@ def test_atomic_write_keeps_old_file_on_failure(tmp_path):
         fsutil.atomic_write_json(target, {"a": float("nan")})
     assert json.loads(target.read_text()) == {"a": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["a.json"]  # no temp files left behind
+
+
+def test_sigint_raises_even_when_started_ignored():
+    """Cancel sends SIGINT; an engine launched with SIGINT ignored (inherited SIG_IGN from a
+    background shell job) must still turn it into KeyboardInterrupt and checkpoint."""
+    import signal
+
+    from engine.cli import main
+
+    before = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        assert main(["version"]) == 0
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)
