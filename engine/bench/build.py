@@ -32,13 +32,14 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from .common import run_child
 
 HELP = "time building 2k nodes x 60 keys + 200k Gaussians into Blender (Empties, F-curves, rig, preview)"
 
@@ -116,21 +117,11 @@ def synthetic_bundle(path, nodes: int = 2000, frames: int = 60, gaussians: int =
 def run_bpy(args: list[str]) -> tuple[dict, float, float]:
     """``python tools/bpy_scene.py ARGS`` in a child; returns (its JSON result, wall s, its peak RSS MiB)."""
     cmd = [sys.executable, str(REPO / "tools" / "bpy_scene.py"), *map(str, args)]
-    t0 = time.perf_counter()
-    with tempfile.TemporaryFile("w+") as err:  # stderr to a file: no pipe to fill up
-        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True)
-        out_text = proc.stdout.read()  # until EOF (the child exits)
-        proc.stdout.close()
-        _, status, usage = os.wait4(proc.pid, 0)  # this child's own rusage (ru_maxrss in KiB on Linux)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        err.seek(0)
-        err_text = err.read()
-    wall = time.perf_counter() - t0
+    out_text, err_text, code, wall, rss = run_child(cmd, REPO)
     lines = [ln for ln in out_text.splitlines() if ln.startswith("{")]
-    if proc.returncode != 0 or not lines:
-        raise RuntimeError(f"tools/bpy_scene.py {args[0]} failed (exit {proc.returncode}); it needs the bpy "
+    if code != 0 or not lines:
+        raise RuntimeError(f"tools/bpy_scene.py {args[0]} failed (exit {code}); it needs the bpy "
                            f"module in {sys.executable}. {err_text[-1500:]}")
-    rss = usage.ru_maxrss / 1024.0 if sys.platform != "darwin" else usage.ru_maxrss / 2 ** 20
     return json.loads(lines[-1]), wall, rss
 
 

@@ -82,3 +82,27 @@ def print_rows(rows: Iterable[dict], as_json: bool, stream=None) -> None:
     for r in cells:
         stream.write("  ".join(c.rjust(w) for c, w in zip(r, widths)) + "\n")
     stream.flush()
+
+
+def run_child(cmd: list[str], cwd) -> tuple[str, str, int, float, float]:
+    """Run ``cmd`` (an argument list) to completion in a child process.
+
+    Returns ``(stdout, stderr, returncode, wall_s, peak_rss_mb)`` where the peak RSS is the
+    child's own (``os.wait4`` rusage), so a bench row measures its configuration alone.
+    stderr goes to a temporary file, not a pipe, so a chatty child cannot block on it.
+    """
+    import subprocess
+    import tempfile
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=err, text=True)
+        out_text = proc.stdout.read()  # until EOF (the child exits)
+        proc.stdout.close()
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)  # so Popen does not reap it again
+        err.seek(0)
+        err_text = err.read()
+    wall = time.perf_counter() - t0
+    rss = usage.ru_maxrss / 1024.0 if sys.platform != "darwin" else usage.ru_maxrss / 2 ** 20
+    return out_text, err_text, proc.returncode, wall, rss

@@ -23,8 +23,9 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+from .common import run_child
 
 HELP = "held-out PSNR/SSIM of node init x motion configs (MANI/FPS/voxel x spline/mlp)"
 
@@ -65,16 +66,7 @@ def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threa
         cmd += ["--steps", str(steps)]
     if threads:
         cmd += ["--threads", str(threads)]
-    t0 = time.perf_counter()
-    with tempfile.TemporaryFile("w+") as err:  # stderr to a file: no pipe to fill up
-        proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=err, text=True)
-        out_text = proc.stdout.read()  # until EOF (the child exits)
-        proc.stdout.close()
-        _, status, usage = os.wait4(proc.pid, 0)  # this child's own rusage (ru_maxrss in KiB on Linux)
-        err.seek(0)
-        err_text = err.read()
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    wall = time.perf_counter() - t0
+    out_text, err_text, code, wall, rss = run_child(cmd, REPO)
     result, error = None, None
     for line in out_text.splitlines():
         try:
@@ -85,10 +77,9 @@ def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threa
             result = ev
         elif isinstance(ev, dict) and ev.get("event") == "error":
             error = ev
-    if proc.returncode != 0 or result is None:
+    if code != 0 or result is None:
         msg = (error or {}).get("message") or err_text[-1500:]
-        raise RuntimeError(f"train {init}+{motion} on {clip} failed ({proc.returncode}): {msg}")
-    rss = usage.ru_maxrss / 1024.0 if sys.platform != "darwin" else usage.ru_maxrss / 2 ** 20
+        raise RuntimeError(f"train {init}+{motion} on {clip} failed ({code}): {msg}")
     return {**result, "wall_s": wall, "peak_rss_mb": rss}
 
 
