@@ -98,6 +98,19 @@ def engine_python(context=None) -> str:
     return cands[0] if cands else ""
 
 
+#: What an operator reports when no engine interpreter is known.
+NO_ENGINE_MESSAGE = ("No engine interpreter found: set one in the add-on preferences "
+                     "or use Create Engine Environment")
+
+
+def engine_python_or_report(context, op) -> str:
+    """:func:`engine_python`, reporting :data:`NO_ENGINE_MESSAGE` on ``op`` when there is none."""
+    python = engine_python(context)
+    if not python:
+        op.report({"ERROR"}, NO_ENGINE_MESSAGE)
+    return python
+
+
 def base_python(context=None) -> str:
     prefs = get(context)
     chosen = bpy.path.abspath(prefs.base_python) if prefs is not None and prefs.base_python else ""

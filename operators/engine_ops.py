@@ -27,10 +27,8 @@ class MOTIONSPLATS_OT_check_engine(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        python = preferences.engine_python(context)
+        python = preferences.engine_python_or_report(context, self)
         if not python:
-            self.report({"ERROR"}, "No engine interpreter found: set one in the add-on preferences "
-                                   "or use Create Engine Environment")
             return {"CANCELLED"}
         process = EngineProcess.for_engine(python, "selftest")
         job = jobs.start("check_engine", process, label="Engine check")

@@ -80,10 +80,8 @@ class MOTIONSPLATS_OT_finetune(bpy.types.Operator):
         if not (bundle / bundle_io.GAUSSIANS_FILE).is_file():
             self.report({"ERROR"}, f"The bundle has no trained Gaussians yet: {bundle}")
             return {"CANCELLED"}
-        python = preferences.engine_python(context)
+        python = preferences.engine_python_or_report(context, self)
         if not python:
-            self.report({"ERROR"}, "No engine interpreter found: set one in the add-on preferences "
-                                   "or use Create Engine Environment")
             return {"CANCELLED"}
         if self.send_edits:
             try:

@@ -108,10 +108,8 @@ def start_training(op, context, *, resume: bool):
     if settings is None:
         op.report({"ERROR"}, "Motion Splats is not registered in this scene")
         return {"CANCELLED"}
-    python = preferences.engine_python(context)
+    python = preferences.engine_python_or_report(context, op)
     if not python:
-        op.report({"ERROR"}, "No engine interpreter found: set one in the add-on preferences "
-                             "or use Create Engine Environment")
         return {"CANCELLED"}
     if resume:
         bundle = bpy.path.abspath(settings.bundle_path) if settings.bundle_path else ""

@@ -38,6 +38,22 @@ def fake_engine(tmp_path: Path, name: str, body: str) -> list[str]:
     return [sys.executable, "-u", str(path)]
 
 
+def look_at_w2c(eye, target=(0.0, 0.0, 0.0)):
+    """OpenCV world-to-camera ``[4, 4]`` (float64) of a camera at ``eye`` looking at ``target``, z up."""
+    import numpy as np
+
+    eye = np.asarray(eye, float)
+    z = np.asarray(target) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])  # rows: camera axes in world (OpenCV: x right, y down, z forward)
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = R, -R @ eye
+    return w2c
+
+
 def event_line(event: str, **fields) -> str:
     return json.dumps({"v": 1, "event": event, "time": 0.0, **fields})
 

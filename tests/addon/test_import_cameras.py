@@ -13,22 +13,9 @@ import struct
 import numpy as np
 import pytest
 
-from tests.addon._support import bpy, registered, clean_jobs, user_dir  # noqa: F401
+from tests.addon._support import bpy, registered, clean_jobs, user_dir, look_at_w2c  # noqa: F401
 
 W, H = 160, 120
-
-
-def _look_at_w2c(eye, target=(0.0, 0.0, 0.0)):
-    eye = np.asarray(eye, float)
-    z = np.asarray(target) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])  # rows: camera axes in world (OpenCV: x right, y down, z forward)
-    w2c = np.eye(4)
-    w2c[:3, :3], w2c[:3, 3] = R, -R @ eye
-    return w2c
 
 
 def _matrix_to_qvec(R):
@@ -47,7 +34,7 @@ def _matrix_to_qvec(R):
 
 def _poses(n=5):
     rng = np.random.default_rng(3)
-    return [_look_at_w2c([4 * np.cos(a), 4 * np.sin(a), 1.0 + 0.3 * rng.standard_normal()])
+    return [look_at_w2c([4 * np.cos(a), 4 * np.sin(a), 1.0 + 0.3 * rng.standard_normal()])
             for a in np.linspace(0.2, 1.4, n)]
 
 

@@ -26,29 +26,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.addon._support import bpy, clean_jobs, registered, user_dir  # noqa: F401
+from tests.addon._support import bpy, clean_jobs, registered, user_dir, look_at_w2c  # noqa: F401
 
 W, H, N_FRAMES = 160, 120, 24
 F_PX, CX, CY = 150.0, 83.5, 57.25  # engine convention: y down from the top edge
 
 
-def _look_at_w2c(eye, target=(0.0, 0.0, 0.0)):
-    eye = np.asarray(eye, float)
-    z = np.asarray(target) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    w2c = np.eye(4)
-    w2c[:3, :3] = np.stack([x, y, z])
-    w2c[:3, 3] = -w2c[:3, :3] @ eye
-    return w2c
-
-
 def _ground_truth():
     K = np.array([[F_PX, 0, CX], [0, F_PX, CY], [0, 0, 1.0]])
     pts = np.random.default_rng(0).uniform(-1, 1, (40, 3))
-    w2cs = [_look_at_w2c([5 * np.cos(a), 5 * np.sin(a), 1.0 + 0.2 * np.sin(3 * a)])
+    w2cs = [look_at_w2c([5 * np.cos(a), 5 * np.sin(a), 1.0 + 0.2 * np.sin(3 * a)])
             for a in np.linspace(0.0, 0.8, N_FRAMES)]
     return K, w2cs, pts
 

@@ -53,15 +53,7 @@ def synthetic_clip(tmp_path, n=16, W=320, H=240):
     f = 260.0 * W / 320  # same field of view at every size
     K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
     w2c = orbit_cameras(n)
-    room = Room()
-    paths = []
-    for i, M in enumerate(w2c):
-        p = tmp_path / f"{i:03d}.png"
-        cv2.imwrite(str(p), room.render(K, M, W, H)[:, :, ::-1])
-        paths.append(p)
-    clip = Clip(frames=FrameSource(paths=paths), width=W, height=H, fps=24.0, times=times_from_count(n),
-                frame_ids=[p.name for p in paths], source=tmp_path)
-    return clip, K, w2c
+    return _clip_from(tmp_path, K, w2c, W, H), K, w2c
 
 
 def test_solve_synthetic_room(tmp_path):
