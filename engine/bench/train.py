@@ -5,6 +5,7 @@ Examples::
     python -m engine.bench train                      # preview preset, 240x180, ~30k Gaussians, ~1k nodes
     python -m engine.bench train --steps 100 --repeats 3 --json
     python -m engine.bench train --clip data/demo_clip  # a real clip through the pipeline front end
+    python -m engine.bench train --device cuda --gaussians 200000 --width 480   # on a GPU
 
 What is measured
 ----------------
@@ -13,7 +14,10 @@ thread settings as ``python -m engine``: ``OMP_WAIT_POLICY=PASSIVE``, torch's de
 thread count unless ``--threads``). The step is the real :class:`engine.train.trainer.Trainer`
 step at the ``preview`` preset with deformation on: spline motion (fused DQB), all default
 losses (L1 + D-SSIM, mask every 4th step, depth, track, ARAP, velocity/acceleration) and
-the per-step densification statistics. The trainer starts *after* the static warm-up and
+the per-step densification statistics. ``--device cuda`` runs the same step on a GPU
+(``backend='auto'``: gsplat when it imports); the timed window then ends with a
+``torch.cuda.synchronize()``, but the per-phase columns time kernel *launches* (CUDA runs
+asynchronously), so on CUDA only ``its_per_s``/``ms_step`` are wall-clock truths. The trainer starts *after* the static warm-up and
 inside the densification window (step ``densify_from + 1``), so motion, track and ARAP
 terms are all live; ``--warmup`` untimed steps come first (Numba cache loads, allocator
 warm-up), then ``--steps`` timed steps. Densification events, rebinding and checkpoints
@@ -75,6 +79,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--repeats", type=int, default=1, help="rows (fresh subprocesses)")
     parser.add_argument("--threads", type=int, default=None, help="torch/Numba threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
+                        help="training device (default cpu; cuda uses the gsplat backend when it imports)")
     parser.add_argument("--work", help="folder for the --clip priors cache (default: <tmp>/motion_splats_bench/train)")
     parser.add_argument("--worker", help=__import__("argparse").SUPPRESS)  # internal: run one row in-process
 
@@ -229,6 +235,10 @@ def measure(data, nodes, cfg_overrides: dict, steps: int, warmup: int, out_dir) 
     end = start + warmup + steps
     cfg = preset_config("preview", **{**cfg_overrides, "steps": end, "checkpoint_every": 0, "rebind_every": 0,
                                        "densify_every": end + 1, "densify_until": end + 1, "log_every": 10})
+    if cfg.device == "cuda":
+        if not torch.cuda.is_available():
+            raise SystemExit("--device cuda: torch sees no CUDA device")
+        data = data.to("cuda")
     t0 = time.perf_counter()
     trainer = Trainer(data, nodes, cfg, out_dir)
     setup_s = time.perf_counter() - t0
@@ -246,6 +256,8 @@ def measure(data, nodes, cfg_overrides: dict, steps: int, warmup: int, out_dir) 
         cfg.steps = end
         w0, c0 = time.perf_counter(), time.process_time()
         trainer.train()
+        if trainer.model.means.is_cuda:
+            torch.cuda.synchronize()  # count the queued kernels in the timed window
         wall, cpu = time.perf_counter() - w0, time.process_time() - c0
     finally:
         for u in undo:
@@ -270,6 +282,8 @@ def measure(data, nodes, cfg_overrides: dict, steps: int, warmup: int, out_dir) 
     row["its_per_s_amortised"] = round(1.0 / (wall / steps + densify_s / base.densify_every), 3)
     row["setup_s"] = round(setup_s, 2)
     row["threads"] = torch.get_num_threads()
+    row["device"] = str(trainer.model.means.device)
+    row["backend"] = cfg.backend
     return row
 
 
@@ -279,7 +293,7 @@ def _worker(spec: dict) -> dict:
     if spec.get("threads"):
         torch.set_num_threads(int(spec["threads"]))
     t0 = time.perf_counter()
-    overrides = {"seed": spec["seed"], "width": spec["width"]}
+    overrides = {"seed": spec["seed"], "width": spec["width"], "device": spec.get("device") or "cpu"}
     if spec.get("clip"):
         from .. import pipeline
         from ..train.config import preset_config
@@ -288,7 +302,7 @@ def _worker(spec: dict) -> dict:
         clip = pipeline.open_clip(spec["clip"])
         prep = pipeline.prepare(clip, cfg, cache_dir=Path(spec["work"]) / "cache" / Path(spec["clip"]).name)
         nodes = pipeline.initial_nodes(prep, cfg)
-        data = pipeline.training_data(prep, torch.device("cpu"))
+        data = pipeline.training_data(prep, torch.device("cpu"))  # the Trainer moves it to cfg.device
         scene = str(spec["clip"])
     else:
         data, nodes = synthetic_scene(spec["width"], spec["frames"], spec["nodes"], spec["seed"])
@@ -308,7 +322,7 @@ def _worker(spec: dict) -> dict:
 def run(args) -> list[dict]:
     spec = {"clip": args.clip, "width": args.width, "gaussians": args.gaussians, "nodes": args.nodes,
             "frames": args.frames, "steps": args.steps, "warmup": args.warmup, "threads": args.threads,
-            "seed": args.seed}
+            "seed": args.seed, "device": args.device}
     if args.worker:  # the subprocess side
         return [_worker(json.loads(args.worker))]
     work = Path(args.work) if args.work else Path(tempfile.gettempdir()) / "motion_splats_bench" / "train"
