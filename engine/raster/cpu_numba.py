@@ -617,9 +617,9 @@ def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out
                 cyy = HALF * c * dy * dy
                 bdy = b * dy
                 row = (py - oy) * TILE - ox
-                # dy is constant along the row, so the conic / mean gradients only need three
-                # sums over the row's pixels (dsig, dsig dx, dsig dx^2): fewer per-lane
-                # products and fewer horizontal reductions per chunk.
+                # dy is constant along the row, so the opacity, conic and mean gradients
+                # only need three sums over the row's pixels (u, u dx, u dx^2, see below):
+                # fewer per-lane products and horizontal reductions per chunk.
                 q0 = F0
                 q1 = F0
                 q2 = F0
@@ -655,18 +655,28 @@ def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out
                         S[_BT + p] = tb
                         # the 0.99 clamp has zero gradient
                         dal = dal if (live & (raw <= ALPHA_MAX)) else F0
-                        s_o += dal * gau
-                        dsig = -dal * al
-                        dsx = dsig * dx
-                        q0 += dsig
-                        q1 += dsx
-                        q2 += dsx * dx
-                # d sigma / d(mx, my, a, b, c) = (-(a dx + b dy), -(b dx + c dy), dx^2/2, dx dy, dy^2/2)
-                s_mx -= a * q1 + bdy * q0
-                s_my -= b * q1 + c * dy * q0
-                s_a += HALF * q2
-                s_b += dy * q1
-                s_c += HALF * dy * dy * q0
+                        # Wherever dal != 0 the alpha is unclamped, al = op gau, so
+                        # dL/dsigma = -dal al = -op u with u = dal gau, which is also the
+                        # opacity gradient: the row needs three sums (u, u dx, u dx^2).
+                        u = dal * gau
+                        ux = u * dx
+                        q0 += u
+                        q1 += ux
+                        q2 += ux * dx
+                # d sigma / d(mx, my, a, b, c) = (-(a dx + b dy), -(b dx + c dy), dx^2/2, dx dy, dy^2/2),
+                # times dL/dsigma = -op u; the factor op (and 1/2) is applied once per instance
+                s_o += q0
+                s_mx += a * q1 + bdy * q0
+                s_my += b * q1 + c * dy * q0
+                s_a -= q2
+                s_b -= dy * q1
+                s_c -= dy * dy * q0
+            opq = op * HALF
+            s_mx *= op
+            s_my *= op
+            s_a *= opq
+            s_b *= op
+            s_c *= opq
             slot = idata[k, R_SLOT]
             grads[slot, 0] = s_mx
             grads[slot, 1] = s_my
