@@ -58,8 +58,8 @@ class ProjectCPU(torch.autograd.Function):
         radii = np.zeros(n, np.int32)
         extents = np.zeros((n, 2), np.float32)
         with kernel_threads():
-            K_.project_forward(m, q, s, o, view, intr, int(width), int(height), np.float32(near),
-                               np.float32(far), np.float32(EPS2D), means2d, conics, depths, radii, extents)
+            K_.dynamic(K_.project_forward, K_.GAUSS_CHUNK, m, q, s, o, view, intr, int(width), int(height),
+                       np.float32(near), np.float32(far), np.float32(EPS2D), means2d, conics, depths, radii, extents)
         ctx.save_for_backward(means, quats, scales)
         ctx.view, ctx.intr, ctx.size, ctx.radii = view, intr, (int(width), int(height)), radii
         r, e = torch.from_numpy(radii), torch.from_numpy(extents)
@@ -75,9 +75,9 @@ class ProjectCPU(torch.autograd.Function):
         v_q = np.empty((n, 4), np.float32)
         v_s = np.empty((n, 3), np.float32)
         with kernel_threads():
-            K_.project_backward(_np(means), _np(quats), _np(scales), ctx.view, ctx.intr, ctx.size[0], ctx.size[1],
-                                np.float32(EPS2D), ctx.radii, z(v_means2d, (n, 2)), z(v_conics, (n, 3)),
-                                z(v_depths, (n,)), v_m, v_q, v_s)
+            K_.dynamic(K_.project_backward, K_.GAUSS_CHUNK, _np(means), _np(quats), _np(scales), ctx.view, ctx.intr,
+                       ctx.size[0], ctx.size[1], np.float32(EPS2D), ctx.radii, z(v_means2d, (n, 2)), z(v_conics, (n, 3)),
+                       z(v_depths, (n,)), v_m, v_q, v_s)
         cast = lambda a, like: torch.from_numpy(a).to(like.dtype)  # noqa: E731
         return cast(v_m, means), cast(v_q, quats), cast(v_s, scales), None, None, None, None, None, None, None
 
@@ -123,7 +123,7 @@ class RasterizeCPU(torch.autograd.Function):
         v_dz = np.empty(n, np.float32)
         with kernel_threads():
             inst = K_.tile_loop(K_.raster_backward, offsets, data, idata, W, H, tx, bg, T, last, gr, ga, gd)
-            K_.sum_instances(gstart, inst, v_m2, v_cn, v_op, v_col, v_dz)
+            K_.dynamic(K_.sum_instances, K_.GAUSS_CHUNK, gstart, inst, v_m2, v_cn, v_op, v_col, v_dz)
         d = ctx.dtypes
         v_bg = None
         if ctx.has_bg and ctx.needs_input_grad[9]:

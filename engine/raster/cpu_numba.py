@@ -59,14 +59,25 @@ BIN_CHUNK = 2048
 MAX_BIN_CHUNKS = 16
 
 
-def tile_loop(kernel, *args):
-    """Call a kernel whose prange runs over tiles with dynamic TILE_CHUNK scheduling."""
+# Per-Gaussian kernels (projection, its backward, the per-Gaussian sums) are handed out in
+# chunks of GAUSS_CHUNK iterations for the same reason: with the default static split, a
+# thread that is descheduled for a time slice stalls the whole pass.
+GAUSS_CHUNK = 4096
+
+
+def dynamic(kernel, chunk, *args):
+    """Call a kernel whose prange is handed out dynamically in chunks of ``chunk`` iterations."""
     prev = get_parallel_chunksize()
-    set_parallel_chunksize(TILE_CHUNK)
+    set_parallel_chunksize(chunk)
     try:
         return kernel(*args)
     finally:
         set_parallel_chunksize(prev)
+
+
+def tile_loop(kernel, *args):
+    """Call a kernel whose prange runs over tiles with dynamic TILE_CHUNK scheduling."""
+    return dynamic(kernel, TILE_CHUNK, *args)
 
 
 _JIT = dict(cache=True, error_model="numpy", nogil=True)
@@ -384,12 +395,12 @@ def bin_tiles(depths, means2d, conics, colors, opac, extents, radii, width, heig
     irec = rec.view(np.int32)
     ntile = np.empty(n, np.int64)
     counts = np.empty((nch, tiles_x * tiles_y), np.int32)
-    _pack_count(means2d, conics, depths, colors, opac, extents, radii, width, height, tiles_x, rec, irec, ntile,
-                counts)
+    dynamic(_pack_count, 1, means2d, conics, depths, colors, opac, extents, radii, width, height, tiles_x, rec,
+            irec, ntile, counts)
     offsets, cursor, gstart = _prefix(counts, ntile)
     m = int(offsets[-1])
     inst_gid = np.empty(m, np.int32)
-    _fill(irec, ntile, gstart, tiles_x, cursor, inst_gid)
+    dynamic(_fill, 1, irec, ntile, gstart, tiles_x, cursor, inst_gid)
     data = np.empty((m, NREC), np.float32)
     idata = data.view(np.int32)
     tile_loop(_sort_gather, offsets, inst_gid, tiles_x, depths, rec, irec, data, idata)
