@@ -23,6 +23,16 @@ mani / fps / voxel / tracklet at one node budget (spline trajectories), plus man
     fraction of the scene extent (diagonal of the GT points' bounding box over all frames).
     ``zero_motion_dyn`` is the error of predicting no motion (the GT motion scale).
 
+Diagnostics (generated scenes): ``--oracle-depth`` / ``--oracle-mask`` replace the depth /
+dynamic prior with the scene's GT depth / mask (one input at a time shows which prior
+limits the trajectories). ``--diagnose`` adds rows: MANI with the opt-in trajectory
+variants (``spline+tri``: ``triangulate_tracks3d``; ``spline+asap``: ``track_depth_scales``
+node depth correction; ``spline+tri+asap``), and two GT-motion ceilings on the same MANI
+nodes: ``gt-motion`` gives every node the GT motion of the surface at its source pixel
+(GT depth there, nearest GT trajectory point) while keeping its position, i.e. the best a
+trajectory initialiser can do with the node depths as placed; ``gt-motion@gt-depth`` also
+slides the node along its source ray to the GT depth.
+
 ``--procedural`` keeps the older torch-only scene (static floor + wall, three moving boxes,
 GT-mask-with-noise prior, tokens from object prototypes); there ``dyn_frac`` uses the
 nearest GT point at the node's source time and ``traj_err`` the node's nearest GT point.
@@ -56,6 +66,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frames", type=int, default=24, help="frames of the procedural scene")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--skip-speed", action="store_true")
+    parser.add_argument("--oracle-depth", action="store_true", help="use the scene's GT depth instead of the depth prior")
+    parser.add_argument("--oracle-mask", action="store_true", help="use the scene's GT mask instead of the dynamic prior")
+    parser.add_argument("--diagnose", action="store_true",
+                        help="add rows: opt-in trajectory variants and GT-motion ceilings (generated scenes)")
 
 
 def _quat_rot(axis_angle: torch.Tensor) -> torch.Tensor:
@@ -199,10 +213,12 @@ def scene_gt(scene_dir, prep) -> dict:
         raise RuntimeError(f"prepared clip has {n} train frames, GT {len(gt.w2c)}")
     h, w = prep.frames.shape[1:3]
     mask = np.stack([cv2.resize(m.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0 for m in gt.mask])
+    depth = np.stack([cv2.resize(d, (w, h), interpolation=cv2.INTER_NEAREST) for d in gt.depth])
+    depth = np.where(np.isfinite(depth) & (depth > 0) & (depth < 1e6), depth, 0).astype(np.float32)
     info = gt.info
     traj = np.load(Path(scene_dir) / "gt" / "trajectories.npz", allow_pickle=False)
     dyn = traj["is_dynamic"].astype(bool)
-    return {"mask": mask, "K": prep.K[order], "w2c": prep.w2c[order], "times": prep.times[order],
+    return {"mask": mask, "depth": depth, "K": prep.K[order], "w2c": prep.w2c[order], "times": prep.times[order],
             "points": gt.points.astype(np.float32), "dynamic": dyn, "info": info}
 
 
@@ -262,6 +278,52 @@ def evaluate_gt(nodes, gt: dict) -> dict:
             "zero_motion_dyn": float(zero) / ext, "extent": ext}
 
 
+def gt_motion_nodes(nodes, gt: dict, at_gt_depth: bool = False):
+    """The same nodes with GT-derived trajectories (a ceiling for trajectory initialisation).
+
+    Each node's centre is projected into its source frame (GT camera); the GT depth at that
+    pixel gives the surface point it stands for, and the nearest GT trajectory point to it
+    (at that frame) gives its motion. The node keeps its position (``at_gt_depth=False``)
+    or slides along its source ray to the GT depth (pixel unchanged). Nodes whose pixel is
+    off-image or has no GT depth stay static.
+    """
+    import dataclasses
+
+    from ..geometry.binding import knn_nodes
+    from ..geometry.camera import project, unproject
+    from ..geometry.hermite import catmull_rom_tangents, hermite_fit
+
+    times = torch.as_tensor(gt["times"]).float()
+    K, w2c = torch.as_tensor(gt["K"]).float(), torch.as_tensor(gt["w2c"]).float()
+    pts = torch.as_tensor(gt["points"]).float()
+    depth = torch.as_tensor(gt["depth"]).float()
+    c = nodes.centers.float()
+    sf = (nodes.source_time.float()[:, None] - times[None]).abs().argmin(1)
+    uv, z = project(K[sf], w2c[sf], c)
+    h, w = depth.shape[1:]
+    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    col = uv[:, 0].nan_to_num(0).floor().long().clamp(0, w - 1)
+    row = uv[:, 1].nan_to_num(0).floor().long().clamp(0, h - 1)
+    zt = depth[sf, row, col]
+    ok = inside & (zt > 0)
+    surf = unproject(K[sf], w2c[sf], uv.nan_to_num(0), torch.where(ok, zt, torch.ones_like(zt)))
+    gi = torch.zeros(len(c), dtype=torch.long)
+    for f in torch.unique(sf).tolist():  # loop over frames
+        sel = torch.nonzero(sf == f).squeeze(1)
+        gi[sel] = knn_nodes(surf[sel], pts[:, f], 1)[0][:, 0]
+    disp = pts[gi] - pts[gi, sf].unsqueeze(1)  # [N, F, 3]
+    base = torch.where(ok[:, None], surf, c) if at_gt_depth else c
+    path = base.unsqueeze(1) + disp * ok[:, None, None]
+    keys = hermite_fit(nodes.key_times.float(), times, path)
+    return dataclasses.replace(nodes, centers=base, pos_keys=keys,
+                               pos_tangents=catmull_rom_tangents(nodes.key_times.float(), keys))
+
+
+#: ``--diagnose`` rows: label → extra NodeInitConfig fields for MANI + spline.
+DIAGNOSE_VARIANTS = {"spline+tri": {"triangulate": True}, "spline+asap": {"depth_scale": True},
+                     "spline+tri+asap": {"triangulate": True, "depth_scale": True}}
+
+
 def run_generated(args) -> list[dict]:
     from .. import pipeline
     from ..nodes import ManiConfig, NodeInitConfig, initialise_nodes
@@ -294,6 +356,15 @@ def run_generated(args) -> list[dict]:
         inputs = dict(depth=pr.depth[order], K=prep.K[order], w2c=prep.w2c[order], times=prep.times[order],
                       tokens=pr.tokens.tokens, patch_centers=pr.tokens.patch_centers, fg=pr.dynamic[order],
                       tracks_xy=tr.xy[:, order], tracks_vis=tr.visible[:, order])
+        oracle = []
+        if getattr(args, "oracle_depth", False):
+            inputs["depth"] = gt["depth"]
+            oracle.append("GT depth")
+        if getattr(args, "oracle_mask", False):
+            inputs["fg"] = gt["mask"].astype(np.float32)
+            oracle.append("GT mask")
+        if oracle:
+            label = f"{label} ({' + '.join(oracle)})"
         num_keys = cfg.num_keys or max(4, min(24, n_train // 4))  # as pipeline.initial_nodes
         res = f"{prep.frames.shape[2]}x{prep.frames.shape[1]}x{n_train}f"
         rows = []
@@ -305,6 +376,21 @@ def run_generated(args) -> list[dict]:
             wall = time.perf_counter() - t0
             rows.append({"scene": label, "res": res, "init": method, "trajectory": traj, **evaluate_gt(nodes, gt),
                          "wall_s": round(wall, 3), "prepare_s": round(prep_s, 2)})
+            if method == "mani" and traj == "spline":
+                mani_nodes = nodes
+        if getattr(args, "diagnose", False):
+            for name, extra in DIAGNOSE_VARIANTS.items():
+                icfg = NodeInitConfig(method="mani", mani=ManiConfig(budget=args.budget, seed=args.seed),
+                                      num_keys=num_keys, num_keyframes=min(12, n_train), seed=args.seed, **extra)
+                t0 = time.perf_counter()
+                nodes = initialise_nodes(**inputs, config=icfg)
+                wall = time.perf_counter() - t0
+                rows.append({"scene": label, "res": res, "init": "mani", "trajectory": name, **evaluate_gt(nodes, gt),
+                             "wall_s": round(wall, 3), "prepare_s": round(prep_s, 2)})
+            for name, at_depth in (("gt-motion", False), ("gt-motion@gt-depth", True)):
+                rows.append({"scene": label, "res": res, "init": "mani", "trajectory": name,
+                             **evaluate_gt(gt_motion_nodes(mani_nodes, gt, at_depth), gt),
+                             "wall_s": float("nan"), "prepare_s": round(prep_s, 2)})
         return rows
     finally:
         if tmp is not None:

@@ -51,3 +51,36 @@ def test_generated_scene_rows(tmp_path):
 def test_procedural_rows():
     rows = bench.run(_args(procedural=True, frames=8, budget=60, skip_speed=True))
     _check(rows, ("scene", "init", "trajectory", "nodes", "dyn_frac", "density_ratio", "traj_err", "wall_s"), 60)
+
+
+def test_gt_motion_ceiling_nodes_follow_the_surface_at_their_pixel():
+    import torch
+
+    from engine.geometry.camera import project
+    from engine.geometry.hermite import hermite_eval
+    from engine.nodes import NodeSet
+
+    scene = bench.make_scene(frames=8, seed=0)
+    traj, K, w2c, times, depth = scene["gt_traj"], scene["K"], scene["w2c"], scene["times"], scene["depth"]
+    uv, z = project(K.unsqueeze(0), w2c.unsqueeze(0), traj[:, :1].expand(-1, 8, -1))
+    col, row = uv[:, 0, 0].floor().long().clamp(0, 255), uv[:, 0, 1].floor().long().clamp(0, 191)
+    visible = torch.nonzero((z[:, 0] - depth[0, row, col]).abs() < 1e-3).squeeze(1)
+    pick = visible[torch.randperm(visible.numel(), generator=torch.Generator().manual_seed(0))[:20]]
+    cam0 = -w2c[0, :3, :3].T @ w2c[0, :3, 3]
+    true = traj[pick, 0]
+    centers = cam0 + 1.3 * (true - cam0)  # placed 30 % too far along the frame-0 ray
+    n, kt = len(pick), torch.linspace(0, 1, 8)
+    rot = torch.zeros(n, 8, 4)
+    rot[..., 0] = 1
+    ns = NodeSet(centers, torch.full((n,), 0.1), kt, centers[:, None].expand(-1, 8, -1).clone(), torch.zeros(n, 8, 3),
+                 rot, torch.zeros_like(rot), torch.ones(n), torch.zeros(n, 1, dtype=torch.long), torch.zeros(n), "test")
+    gt = {"times": times, "K": K, "w2c": w2c, "points": traj, "depth": depth}
+    kept = bench.gt_motion_nodes(ns, gt)
+    moved = bench.gt_motion_nodes(ns, gt, at_gt_depth=True)
+    assert torch.equal(kept.centers, centers)
+    assert (moved.centers - true).norm(dim=-1).max() < 0.1  # the surface at the pixel (pixel footprint)
+    path = hermite_eval(kt, moved.pos_keys, moved.pos_tangents, times)
+    disp_true = traj[pick] - traj[pick, :1]
+    assert ((path - path[:, :1]) - disp_true).norm(dim=-1).mean() < 0.05
+    assert torch.allclose(hermite_eval(kt, kept.pos_keys, kept.pos_tangents, times) - centers[:, None],
+                          path - moved.centers[:, None], atol=1e-4)  # same motion, other position
