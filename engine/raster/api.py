@@ -147,7 +147,8 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
         rgb, alpha, depth = mod.rasterize(means2d, conics, depths, colors, opacities, radii, extents,
                                           width, height, background)
         dt = means.dtype
-        rgb, alpha, depth = rgb.to(dt), alpha.to(dt), depth.to(dt)
+        if rgb.dtype != dt:
+            rgb, alpha, depth = rgb.to(dt), alpha.to(dt), depth.to(dt)
     else:
         rgb, alpha, depth, _ = mod.rasterize(means2d, conics, depths, colors, opacities, visible, width, height,
                                              background)

@@ -36,12 +36,21 @@ def kernel_threads():
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
+    """float32, C-contiguous NumPy view of ``t`` (a copy only when dtype/layout/device differ)."""
+    if t.dtype == torch.float32 and t.device.type == "cpu" and t.is_contiguous():
+        return t.detach().numpy()
     return t.detach().to(device="cpu", dtype=torch.float32).contiguous().numpy()
 
 
 def _intr(K) -> np.ndarray:
-    K = K.detach().cpu().double()
-    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.float32)
+    k = K.detach().cpu().double().numpy()
+    return np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2]], np.float32)
+
+
+def _as(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+    """``a`` as a tensor of ``dtype`` (no copy when it already is float32 and so is dtype)."""
+    t = torch.from_numpy(a)
+    return t if t.dtype == dtype else t.to(dtype)
 
 
 class ProjectCPU(torch.autograd.Function):
@@ -52,11 +61,12 @@ class ProjectCPU(torch.autograd.Function):
         n = means.shape[0]
         m, q, s, o = _np(means), _np(quats), _np(scales), _np(opacities)
         view, intr = _np(w2c), _intr(K)
-        means2d = np.zeros((n, 2), np.float32)
-        conics = np.zeros((n, 3), np.float32)
-        depths = np.zeros(n, np.float32)
-        radii = np.zeros(n, np.int32)
-        extents = np.zeros((n, 2), np.float32)
+        # project_forward writes every entry
+        means2d = np.empty((n, 2), np.float32)
+        conics = np.empty((n, 3), np.float32)
+        depths = np.empty(n, np.float32)
+        radii = np.empty(n, np.int32)
+        extents = np.empty((n, 2), np.float32)
         with kernel_threads():
             K_.dynamic(K_.project_forward, K_.GAUSS_CHUNK, m, q, s, o, view, intr, int(width), int(height),
                        np.float32(near), np.float32(far), np.float32(EPS2D), means2d, conics, depths, radii, extents)
@@ -78,8 +88,8 @@ class ProjectCPU(torch.autograd.Function):
             K_.dynamic(K_.project_backward, K_.GAUSS_CHUNK, _np(means), _np(quats), _np(scales), ctx.view, ctx.intr,
                        ctx.size[0], ctx.size[1], np.float32(EPS2D), ctx.radii, z(v_means2d, (n, 2)), z(v_conics, (n, 3)),
                        z(v_depths, (n,)), v_m, v_q, v_s)
-        cast = lambda a, like: torch.from_numpy(a).to(like.dtype)  # noqa: E731
-        return cast(v_m, means), cast(v_q, quats), cast(v_s, scales), None, None, None, None, None, None, None
+        return (_as(v_m, means.dtype), _as(v_q, quats.dtype), _as(v_s, scales.dtype), None, None, None, None, None,
+                None, None)
 
 
 class RasterizeCPU(torch.autograd.Function):
@@ -128,8 +138,7 @@ class RasterizeCPU(torch.autograd.Function):
         v_bg = None
         if ctx.has_bg and ctx.needs_input_grad[9]:
             v_bg = (torch.from_numpy(gr) * torch.from_numpy(T)[..., None]).sum((0, 1)).to(ctx.bg_dtype)
-        t = torch.from_numpy
-        return (t(v_m2).to(d[0]), t(v_cn).to(d[1]), t(v_dz).to(d[2]), t(v_col).to(d[3]), t(v_op).to(d[4]),
+        return (_as(v_m2, d[0]), _as(v_cn, d[1]), _as(v_dz, d[2]), _as(v_col, d[3]), _as(v_op, d[4]),
                 None, None, None, None, v_bg)
 
 

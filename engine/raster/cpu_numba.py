@@ -104,7 +104,8 @@ def project_forward(means, quats, scales, opac, view, intr, width, height, near,
                     means2d, conics, depths, radii, extents):
     """EWA projection. Inputs float32: means [N,3], quats [N,4], scales [N,3], opac [N],
     view [4,4], intr [4] = (fx, fy, cx, cy). Outputs (preallocated): means2d [N,2],
-    conics [N,3], depths [N], radii [N] int32, extents [N,2]."""
+    conics [N,3], depths [N], radii [N] int32, extents [N,2]; every entry is written
+    (zeros where a Gaussian is culled), so they may come from np.empty."""
     n = means.shape[0]
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     W = np.float32(width)
@@ -119,6 +120,11 @@ def project_forward(means, quats, scales, opac, view, intr, width, height, near,
         radii[i] = 0
         extents[i, 0] = F0
         extents[i, 1] = F0
+        means2d[i, 0] = F0
+        means2d[i, 1] = F0
+        conics[i, 0] = F0
+        conics[i, 1] = F0
+        conics[i, 2] = F0
         mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
         px = view[0, 0] * mx + view[0, 1] * my + view[0, 2] * mz + view[0, 3]
         py = view[1, 0] * mx + view[1, 1] * my + view[1, 2] * mz + view[1, 3]
