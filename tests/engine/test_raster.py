@@ -117,6 +117,37 @@ def test_cpu_binning_chunks_match_reference(monkeypatch):
         assert _rel(gcpu[name], g) <= 1e-3, (name, _rel(gcpu[name], g))
 
 
+def test_small_gaussians_on_tile_borders_per_gaussian():
+    """Footprints of a few pixels straddling the 16-px tile borders (the backward's narrow
+    path, whose per-lane sums run down the rows of each tile's part of a Gaussian): every
+    Gaussian's own gradient must match the reference, not only the gradient norms."""
+    g = torch.Generator().manual_seed(11)
+    n = 150
+    w2c, K = _camera()
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    u = 16.0 * torch.randint(1, 3, (n,), generator=g) + 4.0 * (torch.rand(n, generator=g) - 0.5)
+    v = 16.0 * torch.randint(1, 3, (n,), generator=g) + 4.0 * (torch.rand(n, generator=g) - 0.5)
+    z = 2.0 + 2.0 * torch.rand(n, generator=g)
+    pc = torch.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], -1).double()
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    sigma_px = 0.5 + 1.2 * torch.rand(n, 3, generator=g)
+    scene = dict(means=(pc - t) @ R, quats=torch.randn(n, 4, generator=g).double(),
+                 scales=(sigma_px * (z / fx)[:, None]).double(),
+                 opacities=(0.1 + 0.85 * torch.rand(n, generator=g)).double(),
+                 colors=torch.rand(n, 3, generator=g).double(),
+                 background=torch.tensor([0.1, 0.5, 0.9], dtype=torch.float64))
+    ref, gref = _run("reference", scene, torch.float64)
+    cpu, gcpu = _run("cpu", scene, torch.float32)
+    for name in ("rgb", "alpha", "depth"):
+        assert (getattr(cpu, name).double() - getattr(ref, name)).abs().max().item() <= 1e-4, name
+    for name in ("means", "quats", "scales", "opacities", "colors", "means2d"):
+        a, b = gcpu[name].double().reshape(n, -1), gref[name].reshape(n, -1)
+        scale = b.abs().max()
+        assert scale > 0, name
+        err = ((a - b).abs().max(1).values / (b.abs().max(1).values + 1e-3 * scale)).max().item()
+        assert err <= 1e-3, (name, err)
+
+
 def test_dense_scene_early_termination():
     """Many opaque Gaussians stacked on one pixel region: the 1e-4 stop rule must agree."""
     scene = _scene(n=300, seed=5)
