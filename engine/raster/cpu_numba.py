@@ -476,6 +476,13 @@ def _exp_neg(s):
     return e * e
 
 
+# raster_forward's per-lane stop counts of a narrow instance, run down its rows: _SP + p,
+# after TILE slack entries so that the row above (_SPM + p = _SP + p - TILE) stays inside.
+_SPM = np.uint64(6 * NPAD)
+_SP = np.uint64(6 * NPAD + TILE)
+FWD_SLEN = 6 * NPAD + TILE + NPAD
+
+
 @njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
 def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, out_depth, out_T, out_last):
     """Front-to-back compositing, one tile per task.
@@ -492,7 +499,7 @@ def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, ou
         oy = tyi * TILE
         # A finished pixel keeps its transmittance negated (-T > 0 can never composite
         # again), so no separate "done" field is loaded and stored per lane.
-        S = np.zeros(6 * NPAD, np.float32)
+        S = np.zeros(FWD_SLEN, np.float32)
         S[:NPAD] = F1
         tw = min(TILE, width - ox)
         th = min(TILE, height - oy)
@@ -511,19 +518,20 @@ def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, ou
             narrow = bx1 - bx0 <= 8
             kk = np.float32(k - start + 1)
             stops = F0
-            for py in range(y0, y1):
-                dy = np.float32(py) + HALF - my
-                if narrow:  # one chunk either way: the span test would save nothing
-                    x0, x1 = bx0, bx1
-                else:
-                    x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
-                cyy = HALF * c * dy * dy
-                bdy = b * dy
-                row = (py - oy) * TILE - ox
-                for c0 in range(x0, x1, 8):
-                    base = np.uint64(row + c0)
-                    n_in = np.float32(x1 - c0)
-                    dx0 = np.float32(c0) + HALF - mx
+            if narrow:
+                # One 8-lane chunk per row at column bx0; the per-lane stop counts run down
+                # the rows (field _SP, the row above at -TILE, as in raster_backward) and are
+                # summed horizontally once per instance instead of once per row.
+                p0 = np.uint64((y0 - oy) * TILE - ox + bx0)
+                for j in range(U0, U8):
+                    S[_SPM + p0 + j] = F0
+                n_in = np.float32(bx1 - bx0)
+                dx0 = np.float32(bx0) + HALF - mx
+                for py in range(y0, y1):
+                    dy = np.float32(py) + HALF - my
+                    cyy = HALF * c * dy * dy
+                    bdy = b * dy
+                    base = np.uint64((py - oy) * TILE - ox + bx0)
                     for j in range(U0, U8):
                         p = base + j
                         lj = LANE[j]
@@ -542,7 +550,40 @@ def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, ou
                         S[_D + p] += w * z_
                         S[_T + p] = tt if take else (-tp if stop else tp)
                         S[_LAST + p] = kk if take else S[_LAST + p]
-                        stops += F1 if stop else F0
+                        S[_SP + p] = (F1 if stop else F0) + S[_SPM + p]
+                pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)
+                for j in range(U0, U8):
+                    stops += S[_SP + pl + j]
+            else:
+                for py in range(y0, y1):
+                    dy = np.float32(py) + HALF - my
+                    x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
+                    cyy = HALF * c * dy * dy
+                    bdy = b * dy
+                    row = (py - oy) * TILE - ox
+                    for c0 in range(x0, x1, 8):
+                        base = np.uint64(row + c0)
+                        n_in = np.float32(x1 - c0)
+                        dx0 = np.float32(c0) + HALF - mx
+                        for j in range(U0, U8):
+                            p = base + j
+                            lj = LANE[j]
+                            dx = dx0 + lj
+                            sig = HALF * a * dx * dx + cyy + bdy * dx
+                            al = min(ALPHA_MAX, op * _exp_neg(sig))
+                            tp = S[_T + p]
+                            tt = tp * (F1 - al)
+                            live = (lj < n_in) & (sig >= F0) & (al >= ALPHA_MIN) & (tp > F0)
+                            stop = live & (tt < T_MIN)
+                            take = live & (tt >= T_MIN)
+                            w = al * tp if take else F0
+                            S[_R + p] += w * r_
+                            S[_G + p] += w * g_
+                            S[_B + p] += w * b_
+                            S[_D + p] += w * z_
+                            S[_T + p] = tt if take else (-tp if stop else tp)
+                            S[_LAST + p] = kk if take else S[_LAST + p]
+                            stops += F1 if stop else F0
             alive -= stops
             if alive <= F0:
                 break
