@@ -68,7 +68,7 @@ class ProjectCPU(torch.autograd.Function):
         radii = np.empty(n, np.int32)
         extents = np.empty((n, 2), np.float32)
         with kernel_threads():
-            K_.dynamic(K_.project_forward, K_.GAUSS_CHUNK, m, q, s, o, view, intr, int(width), int(height),
+            K_.dynamic(K_.project_forward, K_.PROJ_CHUNK, m, q, s, o, view, intr, int(width), int(height),
                        np.float32(near), np.float32(far), np.float32(EPS2D), means2d, conics, depths, radii, extents)
         ctx.save_for_backward(means, quats, scales)
         ctx.view, ctx.intr, ctx.size, ctx.radii = view, intr, (int(width), int(height)), radii
@@ -85,7 +85,7 @@ class ProjectCPU(torch.autograd.Function):
         v_q = np.empty((n, 4), np.float32)
         v_s = np.empty((n, 3), np.float32)
         with kernel_threads():
-            K_.dynamic(K_.project_backward, K_.GAUSS_CHUNK, _np(means), _np(quats), _np(scales), ctx.view, ctx.intr,
+            K_.dynamic(K_.project_backward, K_.PROJ_CHUNK, _np(means), _np(quats), _np(scales), ctx.view, ctx.intr,
                        ctx.size[0], ctx.size[1], np.float32(EPS2D), ctx.radii, z(v_means2d, (n, 2)), z(v_conics, (n, 3)),
                        z(v_depths, (n,)), v_m, v_q, v_s)
         return (_as(v_m, means.dtype), _as(v_q, quats.dtype), _as(v_s, scales.dtype), None, None, None, None, None,

@@ -59,10 +59,12 @@ BIN_CHUNK = 2048
 MAX_BIN_CHUNKS = 16
 
 
-# Per-Gaussian kernels (projection, its backward, the per-Gaussian sums) are handed out in
-# chunks of GAUSS_CHUNK iterations for the same reason: with the default static split, a
-# thread that is descheduled for a time slice stalls the whole pass.
+# Per-Gaussian kernels are handed out in chunks for the same reason (with the default
+# static split, a thread that is descheduled for a time slice stalls the whole pass):
+# GAUSS_CHUNK Gaussians for the per-Gaussian sums, PROJ_CHUNK blocks (of PF_BLK / PB_BLK
+# Gaussians) for the projection and its backward.
 GAUSS_CHUNK = 4096
+PROJ_CHUNK = 4
 
 
 def dynamic(kernel, chunk, *args):
@@ -85,7 +87,8 @@ _JIT = dict(cache=True, error_model="numpy", nogil=True)
 
 @njit(inline="always", **_JIT)
 def _quat_rot(qw, qx, qy, qz):
-    inv = F1 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    qn = qw * qw + qx * qx + qy * qy + qz * qz
+    inv = F1 / math.sqrt(qn if qn > F0 else F0)  # a provably non-negative argument vectorises
     w, x, y, z = qw * inv, qx * inv, qy * inv, qz * inv
     r00 = F1 - F2 * (y * y + z * z)
     r01 = F2 * (x * y - w * z)
@@ -99,13 +102,26 @@ def _quat_rot(qw, qx, qy, qz):
     return w, x, y, z, inv, r00, r01, r02, r10, r11, r12, r20, r21, r22
 
 
+# project_forward's local scratch: PF_BLK entries per field (inputs I_*, outputs O_*)
+PF_BLK = 256
+(I_MX, I_MY, I_MZ, I_QW, I_QX, I_QY, I_QZ, I_S0, I_S1, I_S2, I_OP,
+ O_U, O_V, O_CA, O_CB, O_CC, O_Z, O_EX, O_EY, O_R) = (np.uint64(k * PF_BLK) for k in range(20))
+PF_NF = 20
+
+
 @njit(parallel=True, **_JIT)
 def project_forward(means, quats, scales, opac, view, intr, width, height, near, far, eps2d,
                     means2d, conics, depths, radii, extents):
     """EWA projection. Inputs float32: means [N,3], quats [N,4], scales [N,3], opac [N],
     view [4,4], intr [4] = (fx, fy, cx, cy). Outputs (preallocated): means2d [N,2],
     conics [N,3], depths [N], radii [N] int32, extents [N,2]; every entry is written
-    (zeros where a Gaussian is culled), so they may come from np.empty."""
+    (zeros where a Gaussian is culled), so they may come from np.empty.
+
+    Blocks of PF_BLK Gaussians: their inputs are copied into one local scratch array
+    (field-major), a branch-free loop computes every field there, and the results are
+    copied out. With a single base pointer and constant field offsets LLVM needs no alias
+    checks and vectorises the compute loop (8 Gaussians per AVX2 instruction); culled
+    Gaussians are handled with selects."""
     n = means.shape[0]
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     W = np.float32(width)
@@ -113,95 +129,124 @@ def project_forward(means, quats, scales, opac, view, intr, width, height, near,
     tan_x = HALF * W / fx
     tan_y = HALF * H / fy
     lxp = (W - cx) / fx + FOV_PAD * tan_x
-    lxn = cx / fx + FOV_PAD * tan_x
+    lxn = -(cx / fx + FOV_PAD * tan_x)
     lyp = (H - cy) / fy + FOV_PAD * tan_y
-    lyn = cy / fy + FOV_PAD * tan_y
-    for i in prange(n):
-        radii[i] = 0
-        extents[i, 0] = F0
-        extents[i, 1] = F0
-        means2d[i, 0] = F0
-        means2d[i, 1] = F0
-        conics[i, 0] = F0
-        conics[i, 1] = F0
-        conics[i, 2] = F0
-        mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
-        px = view[0, 0] * mx + view[0, 1] * my + view[0, 2] * mz + view[0, 3]
-        py = view[1, 0] * mx + view[1, 1] * my + view[1, 2] * mz + view[1, 3]
-        pz = view[2, 0] * mx + view[2, 1] * my + view[2, 2] * mz + view[2, 3]
-        depths[i] = pz
-        if not (pz > near and pz < far):
-            continue
-        iz = F1 / pz
-        u = fx * px * iz + cx
-        v = fy * py * iz + cy
-        means2d[i, 0] = u
-        means2d[i, 1] = v
-        _, _, _, _, _, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_rot(
-            quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
-        s0, s1, s2 = scales[i, 0], scales[i, 1], scales[i, 2]
-        # M = Rq S ; cov3 = M M^T
-        m00, m01, m02 = r00 * s0, r01 * s1, r02 * s2
-        m10, m11, m12 = r10 * s0, r11 * s1, r12 * s2
-        m20, m21, m22 = r20 * s0, r21 * s1, r22 * s2
-        c00 = m00 * m00 + m01 * m01 + m02 * m02
-        c01 = m00 * m10 + m01 * m11 + m02 * m12
-        c02 = m00 * m20 + m01 * m21 + m02 * m22
-        c11 = m10 * m10 + m11 * m11 + m12 * m12
-        c12 = m10 * m20 + m11 * m21 + m12 * m22
-        c22 = m20 * m20 + m21 * m21 + m22 * m22
-        # camera-frame cov: Wc = R cov3 R^T ; then JW = J Wc (J rows: (j00,0,j02), (0,j11,j12))
-        tx = pz * min(lxp, max(-lxn, px * iz))
-        ty = pz * min(lyp, max(-lyn, py * iz))
-        j00 = fx * iz
-        j02 = -fx * tx * iz * iz
-        j11 = fy * iz
-        j12 = -fy * ty * iz * iz
-        # RC = R cov3 (3x3), Wc = RC R^T
-        a0 = view[0, 0] * c00 + view[0, 1] * c01 + view[0, 2] * c02
-        a1 = view[0, 0] * c01 + view[0, 1] * c11 + view[0, 2] * c12
-        a2 = view[0, 0] * c02 + view[0, 1] * c12 + view[0, 2] * c22
-        b0 = view[1, 0] * c00 + view[1, 1] * c01 + view[1, 2] * c02
-        b1 = view[1, 0] * c01 + view[1, 1] * c11 + view[1, 2] * c12
-        b2 = view[1, 0] * c02 + view[1, 1] * c12 + view[1, 2] * c22
-        d0 = view[2, 0] * c00 + view[2, 1] * c01 + view[2, 2] * c02
-        d1 = view[2, 0] * c01 + view[2, 1] * c11 + view[2, 2] * c12
-        d2 = view[2, 0] * c02 + view[2, 1] * c12 + view[2, 2] * c22
-        w00 = a0 * view[0, 0] + a1 * view[0, 1] + a2 * view[0, 2]
-        w01 = a0 * view[1, 0] + a1 * view[1, 1] + a2 * view[1, 2]
-        w02 = a0 * view[2, 0] + a1 * view[2, 1] + a2 * view[2, 2]
-        w11 = b0 * view[1, 0] + b1 * view[1, 1] + b2 * view[1, 2]
-        w12 = b0 * view[2, 0] + b1 * view[2, 1] + b2 * view[2, 2]
-        w22 = d0 * view[2, 0] + d1 * view[2, 1] + d2 * view[2, 2]
-        # cov2 = J Wc J^T
-        q00 = j00 * w00 + j02 * w02
-        q01 = j00 * w01 + j02 * w12
-        q02 = j00 * w02 + j02 * w22
-        q11 = j11 * w11 + j12 * w12
-        q12 = j11 * w12 + j12 * w22
-        ca = q00 * j00 + q02 * j02 + eps2d
-        cb = q01 * j11 + q02 * j12
-        cc = q11 * j11 + q12 * j12 + eps2d
-        det = ca * cc - cb * cb
-        if not det > F0:
-            continue
-        idet = F1 / det
-        conics[i, 0] = cc * idet
-        conics[i, 1] = -cb * idet
-        conics[i, 2] = ca * idet
-        o = opac[i]
-        if not o >= ALPHA_MIN:
-            continue
-        thr = math.log(max(F255 * o, F1))
-        ex = math.sqrt(F2 * thr * ca) * BOX_SCALE + BOX_PAD
-        ey = math.sqrt(F2 * thr * cc) * BOX_SCALE + BOX_PAD
-        if u + ex <= F0 or u - ex >= W or v + ey <= F0 or v - ey >= H:
-            continue
-        mid = HALF * (ca + cc)
-        lam = mid + math.sqrt(max(mid * mid - det, TENTH))
-        radii[i] = np.int32(math.ceil(F3 * math.sqrt(lam)))
-        extents[i, 0] = ex
-        extents[i, 1] = ey
+    lyn = -(cy / fy + FOV_PAD * tan_y)
+    v00, v01, v02, v03 = view[0, 0], view[0, 1], view[0, 2], view[0, 3]
+    v10, v11, v12, v13 = view[1, 0], view[1, 1], view[1, 2], view[1, 3]
+    v20, v21, v22, v23 = view[2, 0], view[2, 1], view[2, 2], view[2, 3]
+    nb = (n + PF_BLK - 1) // PF_BLK
+    for blk in prange(nb):
+        g0 = blk * PF_BLK
+        m = min(n, g0 + PF_BLK) - g0
+        S = np.empty(PF_NF * PF_BLK, np.float32)
+        for t in range(m):
+            g = g0 + t
+            i = np.uint64(t)
+            S[I_MX + i] = means[g, 0]
+            S[I_MY + i] = means[g, 1]
+            S[I_MZ + i] = means[g, 2]
+            S[I_QW + i] = quats[g, 0]
+            S[I_QX + i] = quats[g, 1]
+            S[I_QY + i] = quats[g, 2]
+            S[I_QZ + i] = quats[g, 3]
+            S[I_S0 + i] = scales[g, 0]
+            S[I_S1 + i] = scales[g, 1]
+            S[I_S2 + i] = scales[g, 2]
+            S[I_OP + i] = opac[g]
+        for i in range(np.uint64(0), np.uint64(m)):
+            mx, my, mz = S[I_MX + i], S[I_MY + i], S[I_MZ + i]
+            px = v00 * mx + v01 * my + v02 * mz + v03
+            py = v10 * mx + v11 * my + v12 * mz + v13
+            pz = v20 * mx + v21 * my + v22 * mz + v23
+            ok_z = (pz > near) & (pz < far)
+            iz = F1 / pz
+            u = fx * px * iz + cx
+            v = fy * py * iz + cy
+            _, _, _, _, _, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_rot(
+                S[I_QW + i], S[I_QX + i], S[I_QY + i], S[I_QZ + i])
+            s0, s1, s2 = S[I_S0 + i], S[I_S1 + i], S[I_S2 + i]
+            m00, m01, m02 = r00 * s0, r01 * s1, r02 * s2
+            m10, m11, m12 = r10 * s0, r11 * s1, r12 * s2
+            m20, m21, m22 = r20 * s0, r21 * s1, r22 * s2
+            c00 = m00 * m00 + m01 * m01 + m02 * m02
+            c01 = m00 * m10 + m01 * m11 + m02 * m12
+            c02 = m00 * m20 + m01 * m21 + m02 * m22
+            c11 = m10 * m10 + m11 * m11 + m12 * m12
+            c12 = m10 * m20 + m11 * m21 + m12 * m22
+            c22 = m20 * m20 + m21 * m21 + m22 * m22
+            xr = px * iz
+            xr = xr if xr > lxn else lxn
+            xr = xr if xr < lxp else lxp
+            yr = py * iz
+            yr = yr if yr > lyn else lyn
+            yr = yr if yr < lyp else lyp
+            tx = pz * xr
+            ty = pz * yr
+            j00 = fx * iz
+            j02 = -fx * tx * iz * iz
+            j11 = fy * iz
+            j12 = -fy * ty * iz * iz
+            a0 = v00 * c00 + v01 * c01 + v02 * c02
+            a1 = v00 * c01 + v01 * c11 + v02 * c12
+            a2 = v00 * c02 + v01 * c12 + v02 * c22
+            b0 = v10 * c00 + v11 * c01 + v12 * c02
+            b1 = v10 * c01 + v11 * c11 + v12 * c12
+            b2 = v10 * c02 + v11 * c12 + v12 * c22
+            d0 = v20 * c00 + v21 * c01 + v22 * c02
+            d1 = v20 * c01 + v21 * c11 + v22 * c12
+            d2 = v20 * c02 + v21 * c12 + v22 * c22
+            w00 = a0 * v00 + a1 * v01 + a2 * v02
+            w01 = a0 * v10 + a1 * v11 + a2 * v12
+            w02 = a0 * v20 + a1 * v21 + a2 * v22
+            w11 = b0 * v10 + b1 * v11 + b2 * v12
+            w12 = b0 * v20 + b1 * v21 + b2 * v22
+            w22 = d0 * v20 + d1 * v21 + d2 * v22
+            q00 = j00 * w00 + j02 * w02
+            q01 = j00 * w01 + j02 * w12
+            q02 = j00 * w02 + j02 * w22
+            q11 = j11 * w11 + j12 * w12
+            q12 = j11 * w12 + j12 * w22
+            ca = q00 * j00 + q02 * j02 + eps2d
+            cb = q01 * j11 + q02 * j12
+            cc = q11 * j11 + q12 * j12 + eps2d
+            det = ca * cc - cb * cb
+            ok_c = ok_z & (det > F0)
+            idet = F1 / det
+            o = S[I_OP + i]
+            o255 = F255 * o
+            thr = math.log(o255 if o255 > F1 else F1)
+            ea = F2 * thr * ca
+            eb = F2 * thr * cc
+            ex = math.sqrt(ea if ea > F0 else F0) * BOX_SCALE + BOX_PAD
+            ey = math.sqrt(eb if eb > F0 else F0) * BOX_SCALE + BOX_PAD
+            onscr = (u + ex > F0) & (u - ex < W) & (v + ey > F0) & (v - ey < H)
+            vis = ok_c & (o >= ALPHA_MIN) & onscr
+            mid = HALF * (ca + cc)
+            dd = mid * mid - det
+            lam = mid + math.sqrt(dd if dd > TENTH else TENTH)
+            rr = math.ceil(F3 * math.sqrt(lam if lam > F0 else F0))
+            S[O_Z + i] = pz
+            S[O_U + i] = u if ok_z else F0
+            S[O_V + i] = v if ok_z else F0
+            S[O_CA + i] = cc * idet if ok_c else F0
+            S[O_CB + i] = -cb * idet if ok_c else F0
+            S[O_CC + i] = ca * idet if ok_c else F0
+            S[O_R + i] = rr if vis else F0
+            S[O_EX + i] = ex if vis else F0
+            S[O_EY + i] = ey if vis else F0
+        for t in range(m):
+            g = g0 + t
+            i = np.uint64(t)
+            depths[g] = S[O_Z + i]
+            means2d[g, 0] = S[O_U + i]
+            means2d[g, 1] = S[O_V + i]
+            conics[g, 0] = S[O_CA + i]
+            conics[g, 1] = S[O_CB + i]
+            conics[g, 2] = S[O_CC + i]
+            radii[g] = np.int32(S[O_R + i])
+            extents[g, 0] = S[O_EX + i]
+            extents[g, 1] = S[O_EY + i]
 
 
 # One 64-byte record per Gaussian (``rec``) and per tile instance (``data``), float32 with
@@ -888,27 +933,34 @@ def sum_instances(gstart, grads, v_means2d, v_conics, v_opac, v_colors, v_depths
         v_depths[g] = s9
 
 
+# project_backward's local scratch: PB_BLK entries per field
+PB_BLK = 128
+(BI_MX, BI_MY, BI_MZ, BI_QW, BI_QX, BI_QY, BI_QZ, BI_S0, BI_S1, BI_S2, BI_VIS, BI_GU, BI_GV, BI_GA, BI_GB, BI_GC,
+ BI_GZ, BO_MX, BO_MY, BO_MZ, BO_QW, BO_QX, BO_QY, BO_QZ, BO_S0, BO_S1, BO_S2) = (np.uint64(k * PB_BLK)
+                                                                              for k in range(27))
+PB_NF = 27
+
+
 @njit(inline="always", **_JIT)
-def _sandwich(v, a00, a01, a02, a11, a12, a22):
-    """``v^T A v``-style congruence ``B = R^T A R`` for symmetric ``A`` (six entries) and
-    the 3x3 ``v`` (``view``'s rotation block); returns B's six entries (b00 b01 b02 b11
-    b12 b22). Scalar code: no scratch arrays, no loops over runtime shapes."""
-    # AR = A R (rows of A times columns of R)
-    t00 = a00 * v[0, 0] + a01 * v[1, 0] + a02 * v[2, 0]
-    t01 = a00 * v[0, 1] + a01 * v[1, 1] + a02 * v[2, 1]
-    t02 = a00 * v[0, 2] + a01 * v[1, 2] + a02 * v[2, 2]
-    t10 = a01 * v[0, 0] + a11 * v[1, 0] + a12 * v[2, 0]
-    t11 = a01 * v[0, 1] + a11 * v[1, 1] + a12 * v[2, 1]
-    t12 = a01 * v[0, 2] + a11 * v[1, 2] + a12 * v[2, 2]
-    t20 = a02 * v[0, 0] + a12 * v[1, 0] + a22 * v[2, 0]
-    t21 = a02 * v[0, 1] + a12 * v[1, 1] + a22 * v[2, 1]
-    t22 = a02 * v[0, 2] + a12 * v[1, 2] + a22 * v[2, 2]
-    b00 = v[0, 0] * t00 + v[1, 0] * t10 + v[2, 0] * t20
-    b01 = v[0, 0] * t01 + v[1, 0] * t11 + v[2, 0] * t21
-    b02 = v[0, 0] * t02 + v[1, 0] * t12 + v[2, 0] * t22
-    b11 = v[0, 1] * t01 + v[1, 1] * t11 + v[2, 1] * t21
-    b12 = v[0, 1] * t02 + v[1, 1] * t12 + v[2, 1] * t22
-    b22 = v[0, 2] * t02 + v[1, 2] * t12 + v[2, 2] * t22
+def _sandwich(v00, v01, v02, v10, v11, v12, v20, v21, v22, a00, a01, a02, a11, a12, a22):
+    """Congruence ``B = V^T A V`` for symmetric ``A`` (six entries) and the 3x3 ``V`` given
+    by its nine entries (row-major); returns B's six entries (b00 b01 b02 b11 b12 b22).
+    Scalars only, so that it vectorises across Gaussians."""
+    t00 = a00 * v00 + a01 * v10 + a02 * v20
+    t01 = a00 * v01 + a01 * v11 + a02 * v21
+    t02 = a00 * v02 + a01 * v12 + a02 * v22
+    t10 = a01 * v00 + a11 * v10 + a12 * v20
+    t11 = a01 * v01 + a11 * v11 + a12 * v21
+    t12 = a01 * v02 + a11 * v12 + a12 * v22
+    t20 = a02 * v00 + a12 * v10 + a22 * v20
+    t21 = a02 * v01 + a12 * v11 + a22 * v21
+    t22 = a02 * v02 + a12 * v12 + a22 * v22
+    b00 = v00 * t00 + v10 * t10 + v20 * t20
+    b01 = v00 * t01 + v10 * t11 + v20 * t21
+    b02 = v00 * t02 + v10 * t12 + v20 * t22
+    b11 = v01 * t01 + v11 * t11 + v21 * t21
+    b12 = v01 * t02 + v11 * t12 + v21 * t22
+    b22 = v02 * t02 + v12 * t12 + v22 * t22
     return b00, b01, b02, b11, b12, b22
 
 
@@ -920,8 +972,10 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
     upstream v_means2d [N,2], v_conics [N,3], v_depths [N]; outputs (preallocated,
     overwritten) v_means [N,3], v_quats [N,4], v_scales [N,3].
 
-    All 2x2 / 3x3 products are written out as scalars (symmetric ones by their six
-    entries): small-matrix loops over runtime shapes neither unroll nor vectorise."""
+    Same layout as the forward: blocks of PB_BLK Gaussians copied into one field-major
+    scratch array, a branch-free (select-based) compute loop that LLVM vectorises, and a
+    copy out. All 2x2 / 3x3 products are written out as scalars (symmetric ones by their
+    six entries)."""
     n = means.shape[0]
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     W = np.float32(width)
@@ -932,38 +986,49 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
     lxn = cx / fx + FOV_PAD * tan_x
     lyp = (H - cy) / fy + FOV_PAD * tan_y
     lyn = cy / fy + FOV_PAD * tan_y
-    Rv = np.empty((3, 3), np.float32)  # the camera rotation, contiguous
-    for r in range(3):
-        for q in range(3):
-            Rv[r, q] = view[r, q]
-    Rt = Rv.T.copy()
-    for i in prange(n):
-        v_quats[i, 0] = F0
-        v_quats[i, 1] = F0
-        v_quats[i, 2] = F0
-        v_quats[i, 3] = F0
-        v_scales[i, 0] = F0
-        v_scales[i, 1] = F0
-        v_scales[i, 2] = F0
-        gpx = F0
-        gpy = F0
-        gpz = v_depths[i]
-        if radii[i] > 0:
-            mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
-            px = view[0, 0] * mx + view[0, 1] * my + view[0, 2] * mz + view[0, 3]
-            py = view[1, 0] * mx + view[1, 1] * my + view[1, 2] * mz + view[1, 3]
-            pz = view[2, 0] * mx + view[2, 1] * my + view[2, 2] * mz + view[2, 3]
+    v00, v01, v02, v03 = view[0, 0], view[0, 1], view[0, 2], view[0, 3]
+    v10, v11, v12, v13 = view[1, 0], view[1, 1], view[1, 2], view[1, 3]
+    v20, v21, v22, v23 = view[2, 0], view[2, 1], view[2, 2], view[2, 3]
+    nb = (n + PB_BLK - 1) // PB_BLK
+    for blk in prange(nb):
+        g0 = blk * PB_BLK
+        m = min(n, g0 + PB_BLK) - g0
+        S = np.empty(PB_NF * PB_BLK, np.float32)
+        for t in range(m):
+            g = g0 + t
+            i = np.uint64(t)
+            S[BI_MX + i] = means[g, 0]
+            S[BI_MY + i] = means[g, 1]
+            S[BI_MZ + i] = means[g, 2]
+            S[BI_QW + i] = quats[g, 0]
+            S[BI_QX + i] = quats[g, 1]
+            S[BI_QY + i] = quats[g, 2]
+            S[BI_QZ + i] = quats[g, 3]
+            S[BI_S0 + i] = scales[g, 0]
+            S[BI_S1 + i] = scales[g, 1]
+            S[BI_S2 + i] = scales[g, 2]
+            S[BI_VIS + i] = F1 if radii[g] > 0 else F0
+            S[BI_GU + i] = v_means2d[g, 0]
+            S[BI_GV + i] = v_means2d[g, 1]
+            S[BI_GA + i] = v_conics[g, 0]
+            S[BI_GB + i] = v_conics[g, 1]
+            S[BI_GC + i] = v_conics[g, 2]
+            S[BI_GZ + i] = v_depths[g]
+        for i in range(np.uint64(0), np.uint64(m)):
+            vis = S[BI_VIS + i] > F0
+            mx, my, mz = S[BI_MX + i], S[BI_MY + i], S[BI_MZ + i]
+            px = v00 * mx + v01 * my + v02 * mz + v03
+            py = v10 * mx + v11 * my + v12 * mz + v13
+            pz = v20 * mx + v21 * my + v22 * mz + v23
             iz = F1 / pz
             iz2 = iz * iz
-            # mean2d
-            gu, gv = v_means2d[i, 0], v_means2d[i, 1]
-            gpx += gu * fx * iz
-            gpy += gv * fy * iz
-            gpz -= (gu * fx * px + gv * fy * py) * iz2
+            gu, gv = S[BI_GU + i], S[BI_GV + i]
+            gpx = gu * fx * iz
+            gpy = gv * fy * iz
+            gpz = -(gu * fx * px + gv * fy * py) * iz2
             w, x, y, z, qinv, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _quat_rot(
-                quats[i, 0], quats[i, 1], quats[i, 2], quats[i, 3])
-            s0, s1, s2 = scales[i, 0], scales[i, 1], scales[i, 2]
-            # M = Rq diag(s), C3 = M M^T
+                S[BI_QW + i], S[BI_QX + i], S[BI_QY + i], S[BI_QZ + i])
+            s0, s1, s2 = S[BI_S0 + i], S[BI_S1 + i], S[BI_S2 + i]
             m00, m01, m02 = r00 * s0, r01 * s1, r02 * s2
             m10, m11, m12 = r10 * s0, r11 * s1, r12 * s2
             m20, m21, m22 = r20 * s0, r21 * s1, r22 * s2
@@ -973,57 +1038,56 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
             c11 = m10 * m10 + m11 * m11 + m12 * m12
             c12 = m10 * m20 + m11 * m21 + m12 * m22
             c22 = m20 * m20 + m21 * m21 + m22 * m22
-            # Wc = Rv C3 Rv^T = (Rv^T)^T C3 (Rv^T)
-            w00, w01, w02, w11, w12, w22 = _sandwich(Rt, c00, c01, c02, c11, c12, c22)
+            # Wc = Rv C3 Rv^T: the congruence with Rt = Rv^T (Rt[r, c] = view[c, r])
+            w00, w01, w02, w11, w12, w22 = _sandwich(v00, v10, v20, v01, v11, v21, v02, v12, v22,
+                                                 c00, c01, c02, c11, c12, c22)
             xc = px * iz
             yc = py * iz
-            cl_x = xc < -lxn or xc > lxp
-            cl_y = yc < -lyn or yc > lyp
-            tx = pz * min(lxp, max(-lxn, xc))
-            ty = pz * min(lyp, max(-lyn, yc))
-            # J = [[j00, 0, j02], [0, j11, j12]]
+            cl_x = (xc < -lxn) | (xc > lxp)
+            cl_y = (yc < -lyn) | (yc > lyp)
+            xr = xc if xc > -lxn else -lxn
+            xr = xr if xr < lxp else lxp
+            yr = yc if yc > -lyn else -lyn
+            yr = yr if yr < lyp else lyp
+            tx = pz * xr
+            ty = pz * yr
             j00 = fx * iz
             j02 = -fx * tx * iz2
             j11 = fy * iz
             j12 = -fy * ty * iz2
-            # S2 = J Wc J^T (+ eps2d on the diagonal)
             ca = j00 * (j00 * w00 + j02 * w02) + j02 * (j00 * w02 + j02 * w22) + eps2d
             cb = j11 * (j00 * w01 + j02 * w12) + j12 * (j00 * w02 + j02 * w22)
             cc = j11 * (j11 * w11 + j12 * w12) + j12 * (j11 * w12 + j12 * w22) + eps2d
             idet = F1 / (ca * cc - cb * cb)
-            # conic Q = inv(S2); dL/dS2 = V = Q (-G) Q with G the symmetric conic gradient
             q00 = cc * idet
             q01 = -cb * idet
             q11 = ca * idet
-            g00 = -v_conics[i, 0]
-            g01 = -HALF * v_conics[i, 1]
-            g11 = -v_conics[i, 2]
+            g00 = -S[BI_GA + i]
+            g01 = -HALF * S[BI_GB + i]
+            g11 = -S[BI_GC + i]
             t00 = q00 * g00 + q01 * g01
             t01 = q00 * g01 + q01 * g11
             t10 = q01 * g00 + q11 * g01
             t11 = q01 * g01 + q11 * g11
-            v00 = t00 * q00 + t01 * q01
-            v01 = t00 * q01 + t01 * q11
-            v11 = t10 * q01 + t11 * q11
-            # dWc = J^T V J (symmetric)
-            e0 = v00 * j02 + v01 * j12  # (V J)[0, 2]
-            e1 = v01 * j02 + v11 * j12  # (V J)[1, 2]
-            dw00 = j00 * v00 * j00
-            dw01 = j00 * v01 * j11
+            e00 = t00 * q00 + t01 * q01
+            e01 = t00 * q01 + t01 * q11
+            e11 = t10 * q01 + t11 * q11
+            e0 = e00 * j02 + e01 * j12
+            e1 = e01 * j02 + e11 * j12
+            dw00 = j00 * e00 * j00
+            dw01 = j00 * e01 * j11
             dw02 = j00 * e0
-            dw11 = j11 * v11 * j11
+            dw11 = j11 * e11 * j11
             dw12 = j11 * e1
             dw22 = j02 * e0 + j12 * e1
-            # dJ = 2 V J Wc; only the non-zero entries of J are needed
-            a0, a1 = v00 * j00, v01 * j11  # (V J)[0, :2]
-            b0, b1 = v01 * j00, v11 * j11  # (V J)[1, :2]
+            a0, a1 = e00 * j00, e01 * j11
+            b0, b1 = e01 * j00, e11 * j11
             dj00 = F2 * (a0 * w00 + a1 * w01 + e0 * w02)
             dj02 = F2 * (a0 * w02 + a1 * w12 + e0 * w22)
             dj11 = F2 * (b0 * w01 + b1 * w11 + e1 * w12)
             dj12 = F2 * (b0 * w02 + b1 * w12 + e1 * w22)
-            # dC3 = Rv^T dWc Rv
-            d00, d01, d02, d11, d12, d22 = _sandwich(Rv, dw00, dw01, dw02, dw11, dw12, dw22)
-            # dM = 2 dC3 M ; M = Rq diag(s) -> dR = dM diag(s), ds_c = sum_r dM[r, c] Rq[r, c]
+            d00, d01, d02, d11, d12, d22 = _sandwich(v00, v01, v02, v10, v11, v12, v20, v21, v22,
+                                                 dw00, dw01, dw02, dw11, dw12, dw22)
             dm00 = F2 * (d00 * m00 + d01 * m10 + d02 * m20)
             dm01 = F2 * (d00 * m01 + d01 * m11 + d02 * m21)
             dm02 = F2 * (d00 * m02 + d01 * m12 + d02 * m22)
@@ -1033,9 +1097,9 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
             dm20 = F2 * (d02 * m00 + d12 * m10 + d22 * m20)
             dm21 = F2 * (d02 * m01 + d12 * m11 + d22 * m21)
             dm22 = F2 * (d02 * m02 + d12 * m12 + d22 * m22)
-            v_scales[i, 0] = dm00 * r00 + dm10 * r10 + dm20 * r20
-            v_scales[i, 1] = dm01 * r01 + dm11 * r11 + dm21 * r21
-            v_scales[i, 2] = dm02 * r02 + dm12 * r12 + dm22 * r22
+            vs0 = dm00 * r00 + dm10 * r10 + dm20 * r20
+            vs1 = dm01 * r01 + dm11 * r11 + dm21 * r21
+            vs2 = dm02 * r02 + dm12 * r12 + dm22 * r22
             dR00, dR01, dR02 = dm00 * s0, dm01 * s1, dm02 * s2
             dR10, dR11, dR12 = dm10 * s0, dm11 * s1, dm12 * s2
             dR20, dR21, dR22 = dm20 * s0, dm21 * s1, dm22 * s2
@@ -1046,28 +1110,38 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
                        - w * dR20 + z * dR21 - F2 * y * dR22)
             gz = F2 * (-F2 * z * dR00 - w * dR01 + x * dR02 + w * dR10 - F2 * z * dR11
                        + y * dR12 + x * dR20 + y * dR21)
-            # through the quaternion normalisation
             dot = w * gw + x * gx + y * gy + z * gz
-            v_quats[i, 0] = (gw - w * dot) * qinv
-            v_quats[i, 1] = (gx - x * dot) * qinv
-            v_quats[i, 2] = (gy - y * dot) * qinv
-            v_quats[i, 3] = (gz - z * dot) * qinv
-            # J -> camera point
             gpz -= dj00 * fx * iz2 + dj11 * fy * iz2
-            if cl_x:
-                lx = tx * iz
-                gpz += dj02 * fx * lx * iz2
-            else:
-                gpx -= dj02 * fx * iz2
-                gpz += dj02 * F2 * fx * px * iz2 * iz
-            if cl_y:
-                ly = ty * iz
-                gpz += dj12 * fy * ly * iz2
-            else:
-                gpy -= dj12 * fy * iz2
-                gpz += dj12 * F2 * fy * py * iz2 * iz
-            # (Wc depends on the view only through the fixed camera rotation.)
-        # dL/dmeans = R^T dL/dp
-        v_means[i, 0] = view[0, 0] * gpx + view[1, 0] * gpy + view[2, 0] * gpz
-        v_means[i, 1] = view[0, 1] * gpx + view[1, 1] * gpy + view[2, 1] * gpz
-        v_means[i, 2] = view[0, 2] * gpx + view[1, 2] * gpy + view[2, 2] * gpz
+            lx = tx * iz
+            gpx = gpx if cl_x else gpx - dj02 * fx * iz2
+            gpz = gpz + dj02 * fx * lx * iz2 if cl_x else gpz + dj02 * F2 * fx * px * iz2 * iz
+            ly = ty * iz
+            gpy = gpy if cl_y else gpy - dj12 * fy * iz2
+            gpz = gpz + dj12 * fy * ly * iz2 if cl_y else gpz + dj12 * F2 * fy * py * iz2 * iz
+            gz0 = S[BI_GZ + i]
+            gpx = gpx if vis else F0
+            gpy = gpy if vis else F0
+            gpz = gz0 + gpz if vis else gz0
+            S[BO_MX + i] = v00 * gpx + v10 * gpy + v20 * gpz
+            S[BO_MY + i] = v01 * gpx + v11 * gpy + v21 * gpz
+            S[BO_MZ + i] = v02 * gpx + v12 * gpy + v22 * gpz
+            S[BO_QW + i] = (gw - w * dot) * qinv if vis else F0
+            S[BO_QX + i] = (gx - x * dot) * qinv if vis else F0
+            S[BO_QY + i] = (gy - y * dot) * qinv if vis else F0
+            S[BO_QZ + i] = (gz - z * dot) * qinv if vis else F0
+            S[BO_S0 + i] = vs0 if vis else F0
+            S[BO_S1 + i] = vs1 if vis else F0
+            S[BO_S2 + i] = vs2 if vis else F0
+        for t in range(m):
+            g = g0 + t
+            i = np.uint64(t)
+            v_means[g, 0] = S[BO_MX + i]
+            v_means[g, 1] = S[BO_MY + i]
+            v_means[g, 2] = S[BO_MZ + i]
+            v_quats[g, 0] = S[BO_QW + i]
+            v_quats[g, 1] = S[BO_QX + i]
+            v_quats[g, 2] = S[BO_QY + i]
+            v_quats[g, 3] = S[BO_QZ + i]
+            v_scales[g, 0] = S[BO_S0 + i]
+            v_scales[g, 1] = S[BO_S1 + i]
+            v_scales[g, 2] = S[BO_S2 + i]
