@@ -35,6 +35,7 @@ class LossWeights:
     arap: float = 1.0         # as-rigid-as-possible on the node graph
     velocity: float = 1e-3    # mild spline velocity regulariser
     acceleration: float = 1e-2  # mild spline acceleration regulariser
+    static: float = 3.0       # motion of nodes the dynamic prior calls static, weighted by (1 - score)
 
 
 @dataclass
@@ -77,6 +78,7 @@ class TrainConfig:
     lr_node_rot: float = 1e-3
     lr_node_rot_final: float = 1e-5
     lr_mlp: float = 1e-3
+    lr_mlp_final: float = 1e-5           # the MLP decays log-linearly too, like the spline keys
 
     # densification (3DGS-style, scaled to the run length)
     densify_from: int = 100

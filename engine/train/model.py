@@ -128,7 +128,7 @@ class DynamicScene(nn.Module):
     Buffers
     -------
     node_centers [N, 3] canonical node centres ``c_i``; key_times [K];
-    bind_idx [G, K_b], bind_w [G, K_b]; graph_idx [N, k]; node_p_dyn [N].
+    bind_idx [G, K_b], bind_w [G, K_b]; graph_idx [N, k]; node_p_dyn [N]; node_fg [N].
     """
 
     def __init__(self, means, colors, scales, opacities, node_centers, node_radii, key_times, pos_keys,
@@ -155,6 +155,10 @@ class DynamicScene(nn.Module):
         self.register_buffer("node_centers", node_centers.clone())
         self.register_buffer("key_times", key_times.clone())
         self.register_buffer("node_p_dyn", node_p_dyn.clone() if node_p_dyn is not None else torch.zeros(n, device=dev))
+        # per-node dynamic score from the foreground prior along the node's initial
+        # trajectory, the same computation for every initialiser (Trainer.node_fg_score);
+        # weights the static-motion regulariser by (1 - score)
+        self.register_buffer("node_fg", torch.zeros(n, device=dev))
         self.register_buffer("graph_idx", graph_idx.clone() if graph_idx is not None
                              else torch.zeros(n, 0, dtype=torch.long, device=dev))
         if motion == "mlp":

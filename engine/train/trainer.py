@@ -22,7 +22,7 @@ from ..fsutil import atomic_path
 from ..geometry.binding import bind_gaussians
 from ..geometry.camera import project, unproject
 from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
-from ..geometry.quaternion import quat_conj, quat_normalize, quat_to_matrix
+from ..geometry.quaternion import quat_apply, quat_conj, quat_normalize, quat_to_matrix
 from ..protocol import Reporter
 from . import losses as L
 from .config import TrainConfig
@@ -146,6 +146,43 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
     return model
 
 
+@torch.no_grad()
+def node_fg_score(data: TrainingData, nodes: B.NodeArrays, occlusion_tol: float = 0.2) -> torch.Tensor | None:
+    """Per-node dynamic score [N] in [0, 1] from the foreground/dynamic prior, the same for
+    every initialiser and motion model.
+
+    Each node follows its *initial* trajectory (the spline the initialiser fitted to the
+    tracks) through the training frames; the score is the mean prior at its projection over
+    the frames where it is in view and not behind the prior's depth (``occlusion_tol``
+    relative; merged nodes may sit a little inside an object), so a static node that a
+    moving object passes in front of stays static.
+    Nodes never in view get the initialiser's ``p_dyn``. None without a prior.
+    """
+    from ..geometry.hermite import hermite_eval
+
+    if data.fg is None:
+        return None
+    dev, dt = data.images.device, torch.float32
+    as_t = lambda a: torch.as_tensor(np.asarray(a), device=dev, dtype=dt)  # noqa: E731
+    times = data.times[data.train_idx].to(dt)
+    pos = hermite_eval(as_t(nodes.key_times), as_t(nodes.pos_keys), as_t(nodes.pos_tangents), times)  # [N, T, 3]
+    n, h, w = pos.shape[0], data.height, data.width
+    acc = torch.zeros(n, device=dev)
+    cnt = torch.zeros(n, device=dev)
+    for j, f in enumerate(data.train_idx.tolist()):
+        uv, z = project(data.K[f], data.w2c[f], pos[:, j])
+        px, py = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        ok = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+        px, py = px.clamp(0, w - 1), py.clamp(0, h - 1)
+        if data.depth is not None:
+            dz = data.depth[f, py, px]
+            ok &= (dz <= 0) | (z <= dz * (1 + occlusion_tol))
+        acc += torch.where(ok, data.fg[f, py, px], 0.0)
+        cnt += ok
+    fallback = as_t(nodes.p_dyn) if nodes.p_dyn is not None else torch.zeros(n, device=dev)
+    return torch.where(cnt > 0, acc / cnt.clamp_min(1), fallback).clamp(0, 1)
+
+
 # ----------------------------------------------------------------------------------
 # Optimiser with per-Gaussian state surgery (densification)
 # ----------------------------------------------------------------------------------
@@ -255,6 +292,9 @@ class Trainer:
             if resume:
                 self.reporter.log(f"no checkpoint at {self.ckpt_path}; starting a new run", "warning")
             self.model = build_model(self.data, nodes, self.cfg, self.gen)
+            fg = node_fg_score(self.data, nodes)
+            if fg is not None:
+                self.model.node_fg.copy_(fg)
             self.opt = make_optimizer(self.model, self.cfg)
             self._reset_densify_stats()
             self._prepare_tracks()
@@ -309,7 +349,9 @@ class Trainer:
         # blurs everything they carry in the held-out view
         lrs = {"means": decay(self.cfg.lr_means * e, self.cfg.lr_means_final * e),
                "pos_keys": decay(self.cfg.lr_node_keys * e, self.cfg.lr_node_keys_final * e),
-               "rot_keys": decay(self.cfg.lr_node_rot, self.cfg.lr_node_rot_final)}
+               "rot_keys": decay(self.cfg.lr_node_rot, self.cfg.lr_node_rot_final),
+               # the MLP baseline decays the same way (SC-GS decays its deformation lr too)
+               "mlp": decay(self.cfg.lr_mlp, self.cfg.lr_mlp_final)}
         for group in self.opt.param_groups:
             if group["name"] in lrs:
                 group["lr"] = lrs[group["name"]]
@@ -362,21 +404,56 @@ class Trainer:
                 target_uv = d.tracks_xy[self.track_ids[sel], f]
                 terms["track"] = w.track * L.track_loss(uv, target_uv, torch.ones_like(sel, dtype=torch.bool),
                                                         float(d.width))
-        if w.arap > 0 and m.graph_idx.shape[1] > 0 and self.step >= self.cfg.warmup_static_steps:
+        motion_on = self.step >= self.cfg.warmup_static_steps
+        arap_on = w.arap > 0 and m.graph_idx.shape[1] > 0 and motion_on
+        static_on = w.static > 0 and motion_on
+        state_t1 = None
+        if arap_on or static_on and m.mlp is not None:
+            # a second random time, shared by ARAP and the MLP's static-motion term
             t1 = float(torch.rand((), generator=self.gen))
+            state_t1 = m.node_state(t1)
+        if arap_on:
             p0, q0 = pos_t, rot_t
-            p1, q1 = m.node_state(t1)
+            p1, q1 = state_t1
             rel = quat_to_matrix(quat_normalize(q1)) @ quat_to_matrix(quat_normalize(q0)).transpose(-1, -2)
             terms["arap"] = w.arap * L.arap_loss(p0, p1, rel, m.graph_idx) / (m.extent ** 2)
         if m.pos_keys is not None and (w.velocity > 0 or w.acceleration > 0) and self.cfg.motion == "spline":
             vel, acc = L.spline_smoothness(m.pos_keys / m.extent, m.key_times)
             terms["velocity"] = w.velocity * vel
             terms["acceleration"] = w.acceleration * acc
+        if static_on:
+            terms["static"] = w.static * self._static_motion(pos_t, rot_t, state_t1)
         loss = sum(terms.values())
         with torch.no_grad():
             metrics = {k: float(v) for k, v in terms.items()}
             metrics["psnr"] = float(L.psnr(out.rgb.clamp(0, 1), target))
         return loss, metrics, out
+
+    def _static_motion(self, pos_t: torch.Tensor, rot_t: torch.Tensor, state_t1=None) -> torch.Tensor:
+        """Motion of the nodes the prior calls static: ``Σ_i (1 − s_i) e_i`` with ``s_i`` the
+        node's foreground score (:func:`node_fg_score`, the same for every initialiser).
+
+        ``e_i`` is the variance over time of the node's position and rotation, in units of
+        the scene extent, so a constant trajectory (any fixed offset) costs nothing. Keyed
+        motion (spline, per_frame) computes it exactly over its keys; the MLP estimates it
+        without bias from this step's time ``t`` and a second random time ``t1``
+        (``state_t1`` = positions and rotations there) as ``½|x(t) − x(t1)|²``
+        (``E|x(t) − x(t1)|² = 2 Var x``). Rotation is measured as the displacement it causes
+        at the node's radius (``2ρ|Δq|``), so a large static node pays for turning the
+        Gaussians far from its centre.
+        """
+        m = self.model
+        s = (1.0 - m.node_fg).clamp(0, 1)
+        arm = (2.0 * m.node_radii().detach() / m.extent) ** 2
+        if m.pos_keys is not None:
+            pk = m.pos_keys / m.extent
+            q = quat_normalize(m.rot_keys)
+            e = ((pk - pk.mean(1, keepdim=True)) ** 2).sum(-1).mean(1)
+            e = e + ((q - q.mean(1, keepdim=True)) ** 2).sum(-1).mean(1) * arm
+        else:
+            pos_1, rot_1 = state_t1
+            e = 0.5 * ((((pos_t - pos_1) / m.extent) ** 2).sum(-1) + ((rot_t - rot_1) ** 2).sum(-1) * arm)
+        return (s * e).sum()
 
     def _dynamic_colors(self) -> torch.Tensor:
         """Per-Gaussian dynamic score as colours [G, 3] for the mask render: the bound
@@ -461,18 +538,24 @@ class Trainer:
                 new_c = m.means[pick].detach().clone()
                 extra = {"node_log_radii": m.node_log_radii[par].detach().clone()}
                 if m.pos_keys is not None:
-                    shift = (new_c - m.node_centers[par]).unsqueeze(1)
-                    extra["pos_keys"] = m.pos_keys[par].detach() + shift
-                    extra["rot_keys"] = m.rot_keys[par].detach().clone()
+                    # the new node starts with exactly its parent's rigid motion: at each
+                    # key p_new = p_par + R_par (c_new − c_par) (without R_par the Gaussians
+                    # it takes over would jump by (I − R_par)(c_new − c_par))
+                    rk = m.rot_keys[par].detach()
+                    shift = (new_c - m.node_centers[par]).unsqueeze(1).expand(-1, rk.shape[1], -1)
+                    extra["pos_keys"] = m.pos_keys[par].detach() + quat_apply(quat_normalize(rk), shift)
+                    extra["rot_keys"] = rk.clone()
                 new_centers = torch.cat([m.node_centers[keep], new_c])
                 new_pdyn = torch.cat([m.node_p_dyn[keep], m.node_p_dyn[par]])
+                new_fg = torch.cat([m.node_fg[keep], m.node_fg[par]])
             elif bool(keep.all()):
                 return
             else:
-                new_centers, new_pdyn = m.node_centers[keep], m.node_p_dyn[keep]
+                new_centers, new_pdyn, new_fg = m.node_centers[keep], m.node_p_dyn[keep], m.node_fg[keep]
             _edit_gaussians(m, self.opt, keep, extra, names=NODE_PARAMS)
             m.node_centers = new_centers.contiguous()
             m.node_p_dyn = new_pdyn.contiguous()
+            m.node_fg = new_fg.contiguous()
             k = m.graph_idx.shape[1] if m.graph_idx.numel() else 0
             if k:
                 m.graph_idx = node_graph(new_centers.cpu(), k)[0].to(self.device)
@@ -521,6 +604,8 @@ class Trainer:
                              "delete the checkpoints folder to start over, or pass a different --out") from None
         sd = state["model"]
         dev = self.device
+        if "node_fg" not in sd:  # a checkpoint from before the static-motion score
+            sd["node_fg"] = torch.zeros_like(sd["node_p_dyn"])
         g = sd["means"].shape[0]
         gen = torch.Generator()
         gen.manual_seed(0)

@@ -127,3 +127,69 @@ def test_node_densification_adds_nodes_where_gaussians_lack_them(tmp_path, scene
     assert float(m.node_centers[:, 1].min()) < 1.0
     assert m.bind_idx.max() < m.num_nodes and torch.isfinite(m.bind_w).all()
     assert m.pos_keys.shape[0] == m.num_nodes == m.node_log_radii.shape[0]
+
+
+def test_node_fg_score_follows_the_prior_along_the_initial_trajectory(tmp_path, scene):
+    """The static-motion weight comes from the dynamic prior at each node's projection along
+    its initial trajectory, whatever the initialiser: wall nodes score ~0, blob nodes high."""
+    data, truth = scene
+    nodes = make_nodes(truth)
+    nodes.p_dyn[:] = 0.5  # the initialiser's own score is not what it uses
+    m = Trainer(data, nodes, _cfg(), tmp_path / "fg").model
+    assert float(m.node_fg[:20].max()) < 0.3 and float(m.node_fg[:20].mean()) < 0.1
+    assert float(m.node_fg[20:].min()) > 0.5
+
+
+def test_static_motion_term_pulls_only_static_nodes_and_spares_constant_offsets(tmp_path, scene):
+    data, truth = scene
+    trainer = Trainer(data, make_nodes(truth), _cfg(loss={"static": 1.0}), tmp_path / "st")
+    m = trainer.model
+    with torch.no_grad():
+        m.pos_keys[:20] += torch.tensor([0.3, -0.2, 0.1])  # a constant offset is no motion
+    pos, rot = m.node_state(0.5)
+    assert float(trainer._static_motion(pos, rot).detach()) < 1e-3
+    with torch.no_grad():
+        m.pos_keys[3, 1] += 0.2  # a static node wobbles
+    loss = trainer._static_motion(pos, rot)
+    loss.backward()
+    g = m.pos_keys.grad.norm(dim=-1)
+    assert float(loss) > 1e-3
+    assert float(g[3].max()) > 10 * float(g[20:].max())  # the moving blob nodes are barely pulled
+
+
+def test_spawned_nodes_start_with_their_parents_rigid_motion(tmp_path, scene):
+    """Node densification must not move any Gaussian: under one rigid motion shared by every
+    node (a rotation as well as a shift), deformed positions are the same before and after."""
+    from engine.geometry.quaternion import quat_from_axis_angle, quat_to_matrix
+
+    data, truth = scene
+    nodes = make_nodes(truth)
+    wall_only = B.NodeArrays(**{k: (v[:20] if k not in ("key_times", "graph_idx") else v)
+                                for k, v in nodes.to_dict().items() if k != "graph_idx"})
+    cfg = _cfg(node_add_max=8, num_nodes=20, node_spawn_factor=0.5)
+    trainer = Trainer(data, wall_only, cfg, tmp_path / "sp")
+    m = trainer.model
+    q = quat_from_axis_angle(torch.tensor([0.0, 0.0, 1.0]), torch.tensor(0.3))
+    R = quat_to_matrix(q)
+    with torch.no_grad():
+        m.pos_keys.copy_((m.node_centers @ R.T + torch.tensor([0.1, 0.2, 0.0]))[:, None].expand_as(m.pos_keys))
+        m.rot_keys.copy_(q.expand_as(m.rot_keys))
+    before = m.deform(0.5)[0].detach().clone()
+    n0 = m.num_nodes
+    trainer._densify_nodes()
+    assert trainer.model.num_nodes > n0
+    after = trainer.model.deform(0.5)[0].detach()
+    assert torch.allclose(before, after, atol=1e-4), float((before - after).abs().max())
+
+
+def test_mlp_baseline_decays_its_learning_rate_like_the_spline_keys(tmp_path, scene):
+    data, truth = scene
+    cfg = _cfg(motion="mlp", steps=100)
+    trainer = Trainer(data, make_nodes(truth), cfg, tmp_path / "lr")
+    lr = {}
+    for step in (0, 100):
+        trainer.step = step
+        trainer._lr_schedule()
+        lr[step] = {g["name"]: g["lr"] for g in trainer.opt.param_groups}
+    assert lr[0]["mlp"] == pytest.approx(cfg.lr_mlp)
+    assert lr[100]["mlp"] == pytest.approx(cfg.lr_mlp_final)
