@@ -13,6 +13,18 @@ than ``min_anchors`` own observations uses all triangulated points projected int
 frame, (in inverse depth). Dynamic regions get no anchors, so they are filled from the
 surrounding static depth. No anchors at all -> the median scene depth (confidence 0).
 
+``moving_fill`` (sparse backend, needs ``dynamic``): ``'surround'`` (default) keeps that fill;
+``'support'`` (opt-in, :func:`support_fill`) then caps every connected moving region
+(``p_dyn > 0.5``) at a low percentile of the depth in a thin ring around it: a moving object
+occludes what is around it, so its depth is at most that of its nearest support (e.g. the
+floor it stands on), not the mean of the background behind it; it cannot place an object
+that floats in front of everything around it. Measured on the generated ``small`` scenes
+(seeds 0/1/2), moving-pixel AbsRel with the GT mask passed as ``dynamic``: 0.99/0.94/0.91 ->
+0.33/0.31/0.29, static pixels unchanged; :func:`support_fill` applied to the default depth
+with the final weight-free motion mask: 0.22/0.21/0.20 -> 0.11/0.11/0.11, but static AbsRel
+0.038/0.038/0.040 -> 0.054/0.056/0.057 (the mask's halo takes the object's depth). Not the
+default: neither improves the node-trajectory error of ``python -m engine.bench nodes``.
+
 ``onnx`` backend: a monocular model (input as in :mod:`onnx_util`; output [B,H,W] or
 [B,1,H,W]; sidecar ``output`` = 'inverse' (default, MiDaS / Depth-Anything style relative
 inverse depth) or 'depth'). The prediction is aligned per frame with a robust scale+shift
@@ -111,6 +123,50 @@ def densify(frame, anchors, max_width=320, lam=2000.0, sigma_color=8.0):
     return dep, cv2.resize(conf.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
 
 
+def _ellipse(d):
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (max(3, int(d) | 1),) * 2)
+
+
+def support_fill(depth, moving, q=5.0, gap=2, ring=5, min_px=20):
+    """Cap each connected moving region at the depth of its nearest support -> depth [H,W].
+
+    ``depth [H,W]``, ``moving [H,W]`` bool. Per 8-connected region of ``moving`` (at least
+    ``min_px`` pixels): the ``q``-th percentile of ``depth`` over the non-moving pixels at
+    ``gap`` .. ``gap + ring`` px from the region (a ring; near a region boundary ``gap`` skips
+    the mask's smear); inside the region ``depth = min(depth, that value)``. A region without
+    ring pixels is left as it is. Never increases the depth; pixels outside ``moving`` are
+    returned unchanged. Vectorised: one connected-components pass, a grey dilation of the
+    label image and a per-label percentile from one lexsort.
+    """
+    import cv2
+
+    depth = np.asarray(depth, np.float32)
+    m = np.asarray(moving, bool).astype(np.uint8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    if n <= 1:
+        return depth.copy()
+    labd = cv2.dilate(lab.astype(np.float32), _ellipse(2 * (gap + ring) + 1)).astype(np.int64)
+    inner = cv2.dilate(m, _ellipse(2 * gap + 1)) > 0
+    sel = (labd > 0) & ~inner & np.isfinite(depth) & (depth > 0)
+    L, v = labd[sel], depth[sel]
+    out = depth.copy()
+    if len(L) == 0:
+        return out
+    o = np.lexsort((v, L))
+    L, v = L[o], v[o]
+    cnt = np.bincount(L, minlength=n)
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    idx = np.clip(start + np.floor((cnt - 1) * float(q) / 100.0).astype(np.int64), 0, len(v) - 1)
+    val = np.where(cnt > 0, v[idx], np.inf).astype(np.float32)
+    val[0] = np.inf
+    val[stats[:, cv2.CC_STAT_AREA] < min_px] = np.inf
+    inr = lab > 0
+    out[inr] = np.minimum(depth[inr], val[lab[inr]])
+    return out
+
+
 def robust_affine(pred, target, iters=10):
     """IRLS Huber fit ``target ~ s*pred + t``; returns (s, t)."""
     w = np.ones_like(pred)
@@ -125,7 +181,7 @@ def robust_affine(pred, target, iters=10):
 
 
 def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=None, dynamic=None, tracks=None,
-                   max_width=320, min_anchors=20, reporter=None):
+                   max_width=320, min_anchors=20, reporter=None, moving_fill="surround"):
     """Dense metric depth for every frame.
 
     Parameters
@@ -135,6 +191,8 @@ def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=No
     anchors : list of F arrays [A,3] (u, v, depth), optional (else built from ``tracks``)
     dynamic : [F,H,W] p_dyn, optional (anchors where > 0.5 are dropped)
     tracks : :class:`~engine.priors.tracks.Tracks`, used when ``anchors`` is None
+    moving_fill : 'surround' (default) | 'support': sparse backend only, with ``dynamic``
+        (see the module docstring and :func:`support_fill`)
 
     Returns
     -------
@@ -156,12 +214,18 @@ def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=No
     alld = np.concatenate([a[:, 2] for a in anchors]) if anchors else np.zeros(0)
     median = float(np.median(alld)) if len(alld) else 1.0
     depth = np.empty((F, H, W), np.float32); conf = np.zeros((F, H, W), np.float32)
+    if moving_fill not in ("surround", "support"):
+        raise InputError(f"unknown moving_fill {moving_fill!r}.", fix="Use 'surround' or 'support'.")
     if backend == "sparse":
+        scale = max(1.0, W / 320.0)  # ring sizes are in px of a <= 320 px wide frame
         for f in range(F):
             if len(anchors[f]) == 0:
                 depth[f] = median
             else:
                 depth[f], conf[f] = densify(frames[f], anchors[f], max_width)
+            if moving_fill == "support" and dynamic is not None:
+                depth[f] = support_fill(depth[f], dynamic[f] > 0.5, gap=int(round(2 * scale)),
+                                        ring=int(round(5 * scale)), min_px=int(round(20 * scale * scale)))
             if reporter is not None:
                 reporter.progress("depth", f + 1, F)
         return depth, conf
