@@ -86,8 +86,8 @@ class ProjectCPU(torch.autograd.Function):
         v_s = np.empty((n, 3), np.float32)
         with kernel_threads():
             K_.dynamic(K_.project_backward, K_.PROJ_CHUNK, _np(means), _np(quats), _np(scales), ctx.view, ctx.intr,
-                       ctx.size[0], ctx.size[1], np.float32(EPS2D), ctx.radii, z(v_means2d, (n, 2)), z(v_conics, (n, 3)),
-                       z(v_depths, (n,)), v_m, v_q, v_s)
+                       ctx.size[0], ctx.size[1], np.float32(EPS2D), ctx.radii, z(v_means2d, (n, 2)),
+                       z(v_conics, (n, 3)), z(v_depths, (n,)), v_m, v_q, v_s)
         return (_as(v_m, means.dtype), _as(v_q, quats.dtype), _as(v_s, scales.dtype), None, None, None, None, None,
                 None, None)
 
@@ -132,7 +132,8 @@ class RasterizeCPU(torch.autograd.Function):
         v_col = np.empty((n, 3), np.float32)
         v_dz = np.empty(n, np.float32)
         with kernel_threads():
-            inst = K_.tile_loop(K_.raster_backward, offsets, data, idata, W, H, tx, bg, T, last, gr, ga, gd)
+            grads = K_.pooled("grads", data.shape[0] * 10, np.float32).reshape(-1, 10)
+            inst = K_.tile_loop(K_.raster_backward, offsets, data, idata, W, H, tx, bg, T, last, gr, ga, gd, grads)
             K_.dynamic(K_.sum_instances, K_.GAUSS_CHUNK, gstart, inst, v_m2, v_cn, v_op, v_col, v_dz)
         d = ctx.dtypes
         v_bg = None

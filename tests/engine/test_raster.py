@@ -148,6 +148,35 @@ def test_small_gaussians_on_tile_borders_per_gaussian():
         assert err <= 1e-3, (name, err)
 
 
+def test_cpu_renders_in_flight_keep_their_buffers():
+    """Scratch buffers are pooled across calls: two renders whose backward runs later (the
+    first render's tile records are still held by its autograd context when the second
+    one bins) must each get the gradient of a render on its own."""
+    w2c, K = _camera(torch.float32)
+    scenes = [_scene(n=120, seed=s) for s in (21, 22)]
+    kw = dict(w2c=w2c, K=K, width=W, height=H, backend="cpu")
+
+    def leaves(sc):
+        return {k: v.clone().float().requires_grad_(True) for k, v in sc.items()}
+
+    def loss(out):
+        return (out.rgb * out.rgb).sum() + out.alpha.sum() + 0.2 * out.depth.sum()
+
+    alone = []
+    for sc in scenes:
+        lv = leaves(sc)
+        loss(render(lv["means"], lv["quats"], lv["scales"], lv["opacities"], colors=lv["colors"],
+                    background=lv["background"], **kw)).backward()
+        alone.append(lv)
+    both = [leaves(sc) for sc in scenes]
+    outs = [render(lv["means"], lv["quats"], lv["scales"], lv["opacities"], colors=lv["colors"],
+                   background=lv["background"], **kw) for lv in both]
+    (loss(outs[0]) + loss(outs[1])).backward()
+    for a, b in zip(alone, both):
+        for k in a:
+            assert torch.equal(a[k].grad, b[k].grad), k
+
+
 def test_dense_scene_early_termination():
     """Many opaque Gaussians stacked on one pixel region: the 1e-4 stop rule must agree."""
     scene = _scene(n=300, seed=5)
