@@ -84,7 +84,7 @@ def dynamic(kernel, chunk, *args):
 # malloc each time, and the first write to every page faults: ~540 faults and ~1 ms wall
 # per forward+backward at 10k Gaussians, 128x128 (a fifth of the time).
 _POOL: dict = {}
-_POOL_PER_KEY = 3
+_POOL_PER_KEY = 2
 
 
 def pooled(key, size, dtype):
@@ -98,9 +98,9 @@ def pooled(key, size, dtype):
         # references: the list, the loop variable, getrefcount's argument
         if sys.getrefcount(b) == 3 and b.dtype == dtype:
             if b.size < size:
-                b = bufs[i] = np.empty(size + size // 4 + 64, dtype)
+                b = bufs[i] = np.empty(size + size // 8 + 64, dtype)
             return b[:size]
-    b = np.empty(size + size // 4 + 64, dtype)
+    b = np.empty(size + size // 8 + 64, dtype)
     if len(bufs) < _POOL_PER_KEY:
         bufs.append(b)
     return b[:size]
