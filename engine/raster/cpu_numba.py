@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 
 import numpy as np
 from numba import get_parallel_chunksize, njit, prange, set_parallel_chunksize
@@ -80,30 +81,42 @@ def dynamic(kernel, chunk, *args):
         set_parallel_chunksize(prev)
 
 
-# Scratch buffers reused across calls. A fresh multi-megabyte np.empty is mapped anew by
-# malloc each time, and the first write to every page faults: ~540 faults and ~1 ms wall
-# per forward+backward at 10k Gaussians, 128x128 (a fifth of the time).
+# Scratch buffers reused across calls. For small scenes glibc hands the freed megabytes
+# back to the kernel after every call (heap trimming) and the first write to each page of
+# the next call's arrays faults: ~540 faults, ~1 ms of 5 ms per forward+backward at 10k
+# Gaussians, 128x128. Large buffers are not pooled: arrays of tens of MB freed every call
+# raise malloc's mmap/trim thresholds so everything is recycled without faults, whereas
+# pooling them keeps the thresholds low and makes the *other* allocations fault
+# (measured at 200k@512: ~4000 faults per call, 20% more CPU).
 _POOL: dict = {}
 _POOL_PER_KEY = 2
+POOL_MAX_BYTES = 4 << 20
+_POOL_LOCK = threading.Lock()  # renders from several Python threads must not share a buffer
 
 
 def pooled(key, size, dtype):
     """A 1-D array of ``size`` elements of ``dtype`` (uninitialised), carved from a pooled
     buffer that nothing else references any more (checked with the reference count, so a
     buffer still held by a tensor, an autograd context or a view is never handed out
-    twice); allocates when every pooled buffer for ``key`` is in use."""
+    twice); allocates when every pooled buffer for ``key`` is in use, or when the request
+    is above POOL_MAX_BYTES."""
     dtype = np.dtype(dtype)
-    bufs = _POOL.setdefault(key, [])
-    for i, b in enumerate(bufs):
-        # references: the list, the loop variable, getrefcount's argument
-        if sys.getrefcount(b) == 3 and b.dtype == dtype:
-            if b.size < size:
-                b = bufs[i] = np.empty(size + size // 8 + 64, dtype)
-            return b[:size]
-    b = np.empty(size + size // 8 + 64, dtype)
-    if len(bufs) < _POOL_PER_KEY:
-        bufs.append(b)
-    return b[:size]
+    if size * dtype.itemsize > POOL_MAX_BYTES:
+        return np.empty(size, dtype)
+    with _POOL_LOCK:
+        bufs = _POOL.setdefault(key, [])
+        for i in range(len(bufs)):
+            b = bufs[i]
+            # references: the list, b, getrefcount's argument (no enumerate: its cached
+            # result tuple would hold one more)
+            if sys.getrefcount(b) == 3 and b.dtype == dtype:
+                if b.size < size:
+                    b = bufs[i] = np.empty(size + size // 8 + 64, dtype)
+                return b[:size]
+        b = np.empty(size + size // 8 + 64, dtype)
+        if len(bufs) < _POOL_PER_KEY:
+            bufs.append(b)
+        return b[:size]
 
 
 def tile_loop(kernel, *args):

@@ -177,6 +177,23 @@ def test_cpu_renders_in_flight_keep_their_buffers():
             assert torch.equal(a[k].grad, b[k].grad), k
 
 
+def test_scratch_pool_reuses_only_free_buffers():
+    import numpy as np
+
+    from engine.raster import cpu_numba
+
+    a = cpu_numba.pooled("test_pool", 1000, np.float32)
+    base_a = id(a.base)
+    b = cpu_numba.pooled("test_pool", 1000, np.float32)  # a is alive: another buffer
+    assert id(b.base) != base_a
+    del a
+    c = cpu_numba.pooled("test_pool", 800, np.float32)  # a's buffer is free again
+    assert id(c.base) == base_a and c.shape == (800,)
+    del b, c
+    d = cpu_numba.pooled("test_pool", 10_000, np.float32)  # grows
+    assert d.shape == (10_000,)
+
+
 def test_dense_scene_early_termination():
     """Many opaque Gaussians stacked on one pixel region: the 1e-4 stop rule must agree."""
     scene = _scene(n=300, seed=5)
