@@ -570,6 +570,30 @@ _SP = np.uint64(6 * NPAD + TILE)
 FWD_SLEN = 6 * NPAD + TILE + NPAD
 
 
+@njit(inline="always", **_JIT)
+def _composite_lane(S, p, lj, dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_, kk):
+    """One lane of :func:`raster_forward`: composite the instance into pixel ``p`` of the
+    tile state ``S`` (lane offset ``lj`` from the chunk's first pixel, ``n_in`` pixels of
+    the chunk inside the span). Returns 1 when the pixel stops here (T < T_MIN), else 0.
+    Branch-free selects, so the 8-lane loops around it still vectorise."""
+    dx = dx0 + lj
+    sig = HALF * a * dx * dx + cyy + bdy * dx
+    al = min(ALPHA_MAX, op * _exp_neg(sig))
+    tp = S[_T + p]
+    tt = tp * (F1 - al)
+    live = (lj < n_in) & (sig >= F0) & (al >= ALPHA_MIN) & (tp > F0)
+    stop = live & (tt < T_MIN)
+    take = live & (tt >= T_MIN)
+    w = al * tp if take else F0
+    S[_R + p] += w * r_
+    S[_G + p] += w * g_
+    S[_B + p] += w * b_
+    S[_D + p] += w * z_
+    S[_T + p] = tt if take else (-tp if stop else tp)
+    S[_LAST + p] = kk if take else S[_LAST + p]
+    return F1 if stop else F0
+
+
 @njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
 def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, out_depth, out_T, out_last):
     """Front-to-back compositing, one tile per task.
@@ -621,23 +645,8 @@ def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, ou
                     base = np.uint64((py - oy) * TILE - ox + bx0)
                     for j in range(U0, U8):
                         p = base + j
-                        lj = LANE[j]
-                        dx = dx0 + lj
-                        sig = HALF * a * dx * dx + cyy + bdy * dx
-                        al = min(ALPHA_MAX, op * _exp_neg(sig))
-                        tp = S[_T + p]
-                        tt = tp * (F1 - al)
-                        live = (lj < n_in) & (sig >= F0) & (al >= ALPHA_MIN) & (tp > F0)
-                        stop = live & (tt < T_MIN)
-                        take = live & (tt >= T_MIN)
-                        w = al * tp if take else F0
-                        S[_R + p] += w * r_
-                        S[_G + p] += w * g_
-                        S[_B + p] += w * b_
-                        S[_D + p] += w * z_
-                        S[_T + p] = tt if take else (-tp if stop else tp)
-                        S[_LAST + p] = kk if take else S[_LAST + p]
-                        S[_SP + p] = (F1 if stop else F0) + S[_SPM + p]
+                        S[_SP + p] = _composite_lane(S, p, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_,
+                                                     kk) + S[_SPM + p]
                 pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)
                 for j in range(U0, U8):
                     stops += S[_SP + pl + j]
@@ -653,24 +662,8 @@ def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, ou
                         n_in = np.float32(x1 - c0)
                         dx0 = np.float32(c0) + HALF - mx
                         for j in range(U0, U8):
-                            p = base + j
-                            lj = LANE[j]
-                            dx = dx0 + lj
-                            sig = HALF * a * dx * dx + cyy + bdy * dx
-                            al = min(ALPHA_MAX, op * _exp_neg(sig))
-                            tp = S[_T + p]
-                            tt = tp * (F1 - al)
-                            live = (lj < n_in) & (sig >= F0) & (al >= ALPHA_MIN) & (tp > F0)
-                            stop = live & (tt < T_MIN)
-                            take = live & (tt >= T_MIN)
-                            w = al * tp if take else F0
-                            S[_R + p] += w * r_
-                            S[_G + p] += w * g_
-                            S[_B + p] += w * b_
-                            S[_D + p] += w * z_
-                            S[_T + p] = tt if take else (-tp if stop else tp)
-                            S[_LAST + p] = kk if take else S[_LAST + p]
-                            stops += F1 if stop else F0
+                            stops += _composite_lane(S, base + j, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_,
+                                                     b_, z_, kk)
             alive -= stops
             if alive <= F0:
                 break
