@@ -681,6 +681,37 @@ def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, ou
                 out_last[Y, X] = np.int32(S[_LAST + p])
 
 
+@njit(inline="always", **_JIT)
+def _unblend_lane(S, p, lj, dx, n_in, kk, a, cyy, bdy, op, r_, g_, b_, z_):
+    """One lane of :func:`raster_backward` for the instance ``kk`` (back to front): restore
+    the transmittance before it (``S[_BT]``) and the upstream-weighted colour behind it
+    (``S[_BB]``; only the sum ``B = sum_ch g_ch B_ch`` matters, it follows the same
+    recurrence as each channel, so one state replaces five).
+
+    Returns ``(wgt, gr, gg, gb, gd, u)``: the blend weight ``alpha T``, the pixel's upstream
+    gradients (r, g, b, depth) and ``u = dL/dalpha * gau``. Wherever ``u != 0`` the alpha
+    is unclamped (``al = op gau``; the 0.99 clamp has zero gradient), so
+    ``dL/dsigma = -op u``, which with ``u`` itself is all the conic, mean and opacity
+    gradients need. Branch-free selects, so the 8-lane loops around it still vectorise."""
+    sig = HALF * a * dx * dx + cyy + bdy * dx
+    gau = _exp_neg(sig)
+    raw = op * gau
+    al = min(ALPHA_MAX, raw)
+    live = (lj < n_in) & (kk < S[_BLAST + p]) & (sig >= F0) & (al >= ALPHA_MIN)
+    alv = al if live else F0
+    om = F1 - alv
+    tb = S[_BT + p] / om  # transmittance before this Gaussian
+    gr, gg, gb = S[_GR + p], S[_GG + p], S[_GB + p]
+    gd, ga = S[_GD + p], S[_GA + p]
+    cdot = gr * r_ + gg * g_ + gb * b_ + gd * z_ + ga
+    bdot = S[_BB + p]
+    dal = tb * (cdot - bdot)
+    S[_BB + p] = alv * cdot + om * bdot
+    S[_BT + p] = tb
+    dal = dal if (live & (raw <= ALPHA_MAX)) else F0
+    return alv * tb, gr, gg, gb, gd, dal * gau
+
+
 # The backward's per-lane running sums down the rows of a narrow instance (see
 # raster_backward): field k at _RS + k * RSTRIDE + p, each block preceded by TILE slack
 # entries so that the row above (p - TILE) never leaves the array. _P* = _S* - TILE.
@@ -776,26 +807,9 @@ def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out
                     base = np.uint64((py - oy) * TILE - ox + bx0)
                     for j in range(U0, U8):
                         p = base + j
-                        lj = LANE[j]
-                        dx = dx0 + lj
-                        sig = HALF * a * dx * dx + cyy + bdy * dx
-                        gau = _exp_neg(sig)
-                        raw = op * gau
-                        al = min(ALPHA_MAX, raw)
-                        live = (lj < n_in) & (kk < S[_BLAST + p]) & (sig >= F0) & (al >= ALPHA_MIN)
-                        alv = al if live else F0
-                        om = F1 - alv
-                        tb = S[_BT + p] / om
-                        wgt = alv * tb
-                        gr, gg, gb = S[_GR + p], S[_GG + p], S[_GB + p]
-                        gd, ga = S[_GD + p], S[_GA + p]
-                        cdot = gr * r_ + gg * g_ + gb * b_ + gd * z_ + ga
-                        bdot = S[_BB + p]
-                        dal = tb * (cdot - bdot)
-                        S[_BB + p] = alv * cdot + om * bdot
-                        S[_BT + p] = tb
-                        dal = dal if (live & (raw <= ALPHA_MAX)) else F0
-                        u = dal * gau
+                        dx = dx0 + LANE[j]
+                        wgt, gr, gg, gb, gd, u = _unblend_lane(S, p, LANE[j], dx, n_in, kk, a, cyy, bdy, op,
+                                                               r_, g_, b_, z_)
                         ux = u * dx
                         S[_SR + p] = wgt * gr + S[_PR + p]
                         S[_SG + p] = wgt * gg + S[_PG + p]
@@ -873,36 +887,13 @@ def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out
                         dx0 = np.float32(c0) + HALF - mx
                         for j in range(U0, U8):
                             p = base + j
-                            lj = LANE[j]
-                            dx = dx0 + lj
-                            sig = HALF * a * dx * dx + cyy + bdy * dx
-                            gau = _exp_neg(sig)
-                            raw = op * gau
-                            al = min(ALPHA_MAX, raw)
-                            live = (lj < n_in) & (kk < S[_BLAST + p]) & (sig >= F0) & (al >= ALPHA_MIN)
-                            alv = al if live else F0
-                            om = F1 - alv
-                            tb = S[_BT + p] / om  # transmittance before this Gaussian
-                            wgt = alv * tb
-                            gr, gg, gb = S[_GR + p], S[_GG + p], S[_GB + p]
-                            gd, ga = S[_GD + p], S[_GA + p]
+                            dx = dx0 + LANE[j]
+                            wgt, gr, gg, gb, gd, u = _unblend_lane(S, p, LANE[j], dx, n_in, kk, a, cyy, bdy,
+                                                                   op, r_, g_, b_, z_)
                             s_r += wgt * gr
                             s_g += wgt * gg
                             s_bb += wgt * gb
                             s_z += wgt * gd
-                            # Only the upstream-weighted sum of what lies behind matters: B = sum_ch g_ch B_ch
-                            # follows the same recurrence as each channel, so one state replaces five.
-                            cdot = gr * r_ + gg * g_ + gb * b_ + gd * z_ + ga
-                            bdot = S[_BB + p]
-                            dal = tb * (cdot - bdot)
-                            S[_BB + p] = alv * cdot + om * bdot
-                            S[_BT + p] = tb
-                            # the 0.99 clamp has zero gradient
-                            dal = dal if (live & (raw <= ALPHA_MAX)) else F0
-                            # Wherever dal != 0 the alpha is unclamped, al = op gau, so
-                            # dL/dsigma = -dal al = -op u with u = dal gau, which is also the
-                            # opacity gradient: the row needs three sums (u, u dx, u dx^2).
-                            u = dal * gau
                             ux = u * dx
                             q0 += u
                             q1 += ux
