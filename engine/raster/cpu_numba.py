@@ -151,20 +151,6 @@ PF_BLK = 256
 PF_NF = 20
 
 
-@njit(inline="always", **_JIT)
-def _jacobian_clamp(intr, width, height):
-    """Limits of ``x/z`` and ``y/z`` for the projection Jacobian (the image extent plus
-    ``FOV_PAD`` of the half-field of view, as in 3DGS/gsplat), shared by the projection and
-    its backward: ``(x_pos, x_neg, y_pos, y_neg)``, the negative limits as magnitudes."""
-    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
-    W = np.float32(width)
-    H = np.float32(height)
-    tan_x = HALF * W / fx
-    tan_y = HALF * H / fy
-    return ((W - cx) / fx + FOV_PAD * tan_x, cx / fx + FOV_PAD * tan_x,
-            (H - cy) / fy + FOV_PAD * tan_y, cy / fy + FOV_PAD * tan_y)
-
-
 @njit(parallel=True, **_JIT)
 def project_forward(means, quats, scales, opac, view, intr, width, height, near, far, eps2d,
                     means2d, conics, depths, radii, extents):
@@ -182,9 +168,12 @@ def project_forward(means, quats, scales, opac, view, intr, width, height, near,
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     W = np.float32(width)
     H = np.float32(height)
-    lxp, lxn, lyp, lyn = _jacobian_clamp(intr, width, height)
-    lxn = -lxn
-    lyn = -lyn
+    tan_x = HALF * W / fx
+    tan_y = HALF * H / fy
+    lxp = (W - cx) / fx + FOV_PAD * tan_x
+    lxn = -(cx / fx + FOV_PAD * tan_x)
+    lyp = (H - cy) / fy + FOV_PAD * tan_y
+    lyn = -(cy / fy + FOV_PAD * tan_y)
     v00, v01, v02, v03 = view[0, 0], view[0, 1], view[0, 2], view[0, 3]
     v10, v11, v12, v13 = view[1, 0], view[1, 1], view[1, 2], view[1, 3]
     v20, v21, v22, v23 = view[2, 0], view[2, 1], view[2, 2], view[2, 3]
@@ -1014,7 +1003,14 @@ def project_backward(means, quats, scales, view, intr, width, height, eps2d, rad
     six entries)."""
     n = means.shape[0]
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
-    lxp, lxn, lyp, lyn = _jacobian_clamp(intr, width, height)
+    W = np.float32(width)
+    H = np.float32(height)
+    tan_x = HALF * W / fx
+    tan_y = HALF * H / fy
+    lxp = (W - cx) / fx + FOV_PAD * tan_x
+    lxn = cx / fx + FOV_PAD * tan_x
+    lyp = (H - cy) / fy + FOV_PAD * tan_y
+    lyn = cy / fy + FOV_PAD * tan_y
     v00, v01, v02, v03 = view[0, 0], view[0, 1], view[0, 2], view[0, 3]
     v10, v11, v12, v13 = view[1, 0], view[1, 1], view[1, 2], view[1, 3]
     v20, v21, v22, v23 = view[2, 0], view[2, 1], view[2, 2], view[2, 3]
