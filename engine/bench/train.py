@@ -88,6 +88,28 @@ def add_arguments(parser) -> None:
 # ----------------------------------------------------------------------------------
 # Synthetic scene
 # ----------------------------------------------------------------------------------
+def render_observation(means, quats, scales, opacities, colors, dynamic, w2c, K, width: int, height: int,
+                       backend: str = "auto"):
+    """What a camera sees of a known Gaussian scene, as the priors would give it.
+
+    ``dynamic [N, 3]`` is 1 on moving Gaussians and 0 elsewhere (rendered as colours).
+    Returns ``(image [H, W, 3] in [0, 1], depth [H, W] (expected depth where alpha > 0.5,
+    else 0), fg [H, W] in [0, 1])``. Shared by this bench's synthetic scene and the training
+    tests' procedural scene.
+    """
+    import torch
+
+    from .. import raster
+
+    with torch.no_grad():
+        out = raster.render(means, quats, scales, opacities, colors=colors, w2c=w2c, K=K, width=width,
+                            height=height, background=torch.zeros(3), backend=backend)
+        m = raster.render(means, quats, scales, opacities, colors=dynamic, w2c=w2c, K=K, width=width,
+                          height=height, background=torch.zeros(3), backend=backend)
+    depth = (out.depth / out.alpha.clamp_min(1e-6))[..., 0] * (out.alpha[..., 0] > 0.5)
+    return out.rgb.clamp(0, 1), depth, m.rgb[..., 0].clamp(0, 1)
+
+
 def synthetic_scene(width: int = 240, frames: int = 60, nodes: int = 1024, seed: int = 0):
     """A deterministic dynamic scene: ``(TrainingData, NodeArrays)``.
 
@@ -101,7 +123,6 @@ def synthetic_scene(width: int = 240, frames: int = 60, nodes: int = 1024, seed:
     import torch
 
     from .. import bundle as B
-    from .. import raster
     from ..geometry.camera import intrinsics, look_at, project
     from ..geometry.hermite import catmull_rom_tangents
     from ..geometry.quaternion import quat_apply, quat_from_axis_angle
@@ -142,14 +163,12 @@ def synthetic_scene(width: int = 240, frames: int = 60, nodes: int = 1024, seed:
             w2c = look_at(eye, torch.tensor([0.0, 1.5, 0.0])).float()
             moved = quat_apply(rot[f].expand(nb, 4), blob) + off[f]
             means = torch.cat([wall, moved])
-            out = raster.render(means, quats, scales, op, colors=torch.cat([wall_col, blob_col]).clamp(0, 1),
-                                w2c=w2c, K=K, width=width, height=height, background=torch.zeros(3), backend="cpu")
-            m = raster.render(means, quats, scales, op, colors=dyn, w2c=w2c, K=K, width=width, height=height,
-                              background=torch.zeros(3), backend="cpu")
+            img, dep, fg = render_observation(means, quats, scales, op, torch.cat([wall_col, blob_col]).clamp(0, 1),
+                                              dyn, w2c, K, width, height, backend="cpu")
             w2cs.append(w2c)
-            imgs.append(out.rgb.clamp(0, 1))
-            depths.append((out.depth / out.alpha.clamp_min(1e-6))[..., 0] * (out.alpha[..., 0] > 0.5))
-            fgs.append(m.rgb[..., 0].clamp(0, 1))
+            imgs.append(img)
+            depths.append(dep)
+            fgs.append(fg)
     w2c = torch.stack(w2cs)
     # tracks: 1500 wall points and 500 blob points, projected into every frame
     pw, pb = wall[:1500], blob[:500]

@@ -11,8 +11,8 @@ import numpy as np
 import torch
 
 from engine import bundle as B
-from engine import raster
-from engine.geometry.camera import intrinsics, look_at
+from engine.bench.train import render_observation
+from engine.geometry.camera import intrinsics, look_at, project
 from engine.train.data import TrainingData
 
 
@@ -47,16 +47,12 @@ def make_scene(frames: int = 16, width: int = 64, height: int = 48, seed: int = 
         quats[:, 0] = 1
         scales = torch.cat([torch.full((nw, 3), 0.05), torch.full((nb, 3), 0.06)])
         op = torch.full((n,), 0.9)
-        with torch.no_grad():
-            out = raster.render(means, quats, scales, op, colors=cols, w2c=w2c, K=K, width=width, height=height,
-                                background=torch.zeros(3), backend="auto")
-            dyn = torch.cat([torch.zeros(nw, 3), torch.ones(nb, 3)])
-            m = raster.render(means, quats, scales, op, colors=dyn, w2c=w2c, K=K, width=width, height=height,
-                              background=torch.zeros(3), backend="auto")
+        dyn = torch.cat([torch.zeros(nw, 3), torch.ones(nb, 3)])
+        img, dep, fg = render_observation(means, quats, scales, op, cols, dyn, w2c, K, width, height)
         w2cs.append(w2c)
-        imgs.append(out.rgb.clamp(0, 1))
-        depths.append((out.depth / out.alpha.clamp_min(1e-6))[..., 0] * (out.alpha[..., 0] > 0.5))
-        fgs.append(m.rgb[..., 0].clamp(0, 1))
+        imgs.append(img)
+        depths.append(dep)
+        fgs.append(fg)
     w2c = torch.stack(w2cs)
     # tracks: true surface points (wall subset + blob subset) projected into every frame
     pts_static = wall[:200]
@@ -64,8 +60,7 @@ def make_scene(frames: int = 16, width: int = 64, height: int = 48, seed: int = 
     xy = []
     for f in range(frames):
         pts = torch.cat([pts_static, pts_dyn + blob_offset(times[f:f + 1])[0]])
-        cam = pts @ w2c[f, :3, :3].T + w2c[f, :3, 3]
-        uv = torch.stack([K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]], -1)
+        uv, _ = project(K, w2c[f], pts)
         xy.append(uv)
     tracks = torch.stack(xy, 1)
     vis = (tracks[..., 0] > 0) & (tracks[..., 0] < width) & (tracks[..., 1] > 0) & (tracks[..., 1] < height)
