@@ -92,12 +92,15 @@ def node_overlay(image: np.ndarray, K, w2c, positions: np.ndarray, p_dyn: np.nda
     return img
 
 
-def write_report(bundle_dir, out_html=None, eval_result=None, clip_path=None) -> Path:
+def write_report(bundle_dir, out_html=None, eval_result=None, clip_path=None, device: str = "auto",
+                 backend: str = "auto") -> Path:
     """Write the HTML report of ``bundle_dir``; returns the path of ``report.html``.
 
     ``eval_result`` is an :func:`engine.commands.eval.evaluate_bundle` result with
     ``_images`` (held-out renders); when None the evaluation is run here (it needs the
-    clip; without it the report says so and skips the renders).
+    clip; without it the report says so and skips the renders) on ``device`` with the
+    raster ``backend`` (``engine train`` passes its own, so a ``--device cpu`` run never
+    touches a GPU).
     """
     import torch
 
@@ -117,7 +120,7 @@ def write_report(bundle_dir, out_html=None, eval_result=None, clip_path=None) ->
         try:
             from .commands.eval import evaluate_bundle
 
-            eval_result = evaluate_bundle(bundle_dir, clip_path, keep_images=True,
+            eval_result = evaluate_bundle(bundle_dir, clip_path, keep_images=True, device=device, backend=backend,
                                           write=not (bundle_dir / "eval.json").exists())
         except InputError as exc:
             notes.append(f"held-out evaluation skipped: {exc.message if hasattr(exc, 'message') else exc}")

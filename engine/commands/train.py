@@ -27,18 +27,19 @@ def run(args, reporter):
     result = reconstruct(args.clip, args.out, cfg, reporter, resume=args.resume, overwrite=args.overwrite,
                          cache_dir=args.cache, prior_config=prior_config_from_args(args),
                          clip_options=clip_options(args))
-    result["report"] = _write_report(result.get("bundle", args.out), reporter)
+    result["report"] = _write_report(result.get("bundle", args.out), reporter, cfg.device, cfg.backend)
     reporter.result(**result)
     return 0
 
 
-def _write_report(bundle, reporter):
-    """<out>/report/report.html; a failed report is logged, never fails the run."""
+def _write_report(bundle, reporter, device: str = "auto", backend: str = "auto"):
+    """<out>/report/report.html, evaluated on the training run's device and backend; a failed
+    report is logged, never fails the run."""
     from ..errors import EngineError
     from ..report import write_report
 
     try:
-        return str(write_report(bundle))
+        return str(write_report(bundle, device=device, backend=backend))
     except (EngineError, OSError, ValueError) as exc:
         reporter.log(f"report not written: {exc}", level="warning")
         return None

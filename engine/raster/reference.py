@@ -28,6 +28,8 @@ ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
 EPS2D = 0.3
+# elements of one dense [pixels, Gaussians] temporary in rasterize (~64 MB in float32)
+DENSE_BUDGET = 1 << 24
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
@@ -129,7 +131,21 @@ def rasterize(means2d, conics, depths, colors, opacities, visible, width, height
     order = idx[torch.sort(depths.detach()[idx], stable=True).indices]
     m2, cn, dz = means2d[order], conics[order], depths[order]
     col, op = colors[order], opacities[order]
-    ys, xs = torch.meshgrid(torch.arange(height, device=dev, dtype=dtype) + 0.5,
+    # pixels are independent: composite bands of rows so the dense [pixels, n] temporaries
+    # stay near DENSE_BUDGET elements (a full 240x180 frame of 30k Gaussians would be 5 GB each)
+    band = max(1, min(height, DENSE_BUDGET // max(1, len(order) * width)))
+    outs = [_composite_rows(m2, cn, dz, col, op, y0, min(height, y0 + band), width, background)
+            for y0 in range(0, height, band)]
+    rgb, alpha, depth, T_final = (torch.cat(parts, 0) for parts in zip(*outs))
+    return rgb, alpha, depth, T_final
+
+
+def _composite_rows(m2, cn, dz, col, op, y0: int, y1: int, width: int, background):
+    """:func:`rasterize` for image rows ``y0 <= y < y1`` (Gaussians already depth-sorted);
+    returns rgb [h, W, 3], alpha, depth, transmittance [h, W, 1] with h = y1 - y0."""
+    dtype, dev = m2.dtype, m2.device
+    height = y1 - y0
+    ys, xs = torch.meshgrid(torch.arange(y0, y1, device=dev, dtype=dtype) + 0.5,
                             torch.arange(width, device=dev, dtype=dtype) + 0.5, indexing="ij")
     dx = xs.reshape(-1, 1) - m2[None, :, 0]  # [P, n]
     dy = ys.reshape(-1, 1) - m2[None, :, 1]

@@ -117,6 +117,25 @@ def test_cpu_binning_chunks_match_reference(monkeypatch):
         assert _rel(gcpu[name], g) <= 1e-3, (name, _rel(gcpu[name], g))
 
 
+def test_reference_row_bands_match_one_band(monkeypatch):
+    """The reference composites bands of rows to bound its memory (a full frame on a GPU
+    without gsplat once took 64 GB): bands of a few rows give the one-band image and gradients."""
+    scene = _scene(n=120, seed=3)
+    one, gone = _run("reference", scene, torch.float64)
+    calls = []
+    composite = reference._composite_rows
+    monkeypatch.setattr(reference, "_composite_rows", lambda *a: calls.append(a[5:7]) or composite(*a))
+    for budget in (120 * W, 120 * W * 5 - 1):  # >= 1 row per band; several rows, uneven last band
+        monkeypatch.setattr(reference, "DENSE_BUDGET", budget)
+        calls.clear()
+        banded, gband = _run("reference", scene, torch.float64)
+        assert len(calls) > 2 and calls[-1][1] == H, calls
+        for name in ("rgb", "alpha", "depth"):
+            assert torch.allclose(getattr(banded, name), getattr(one, name), atol=1e-12), name
+        for name, g in gone.items():
+            assert torch.allclose(gband[name], g, atol=1e-10), name
+
+
 def test_small_gaussians_on_tile_borders_per_gaussian():
     """Footprints of a few pixels straddling the 16-px tile borders (the backward's narrow
     path, whose per-lane sums run down the rows of each tile's part of a Gaussian): every
