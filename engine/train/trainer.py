@@ -152,10 +152,7 @@ def node_fg_score(data: TrainingData, nodes: B.NodeArrays, occlusion_tol: float 
     every initialiser and motion model.
 
     Each node follows its *initial* trajectory (the spline the initialiser fitted to the
-    tracks) through the training frames; the score is the mean prior at its projection over
-    the frames where it is in view and not behind the prior's depth (``occlusion_tol``
-    relative; merged nodes may sit a little inside an object), so a static node that a
-    moving object passes in front of stays static.
+    tracks) through the training frames; the score is :func:`trajectory_fg_score` of it.
     Nodes never in view get the initialiser's ``p_dyn``. None without a prior.
     """
     from ..geometry.hermite import hermite_eval
@@ -166,10 +163,25 @@ def node_fg_score(data: TrainingData, nodes: B.NodeArrays, occlusion_tol: float 
     as_t = lambda a: torch.as_tensor(np.asarray(a), device=dev, dtype=dt)  # noqa: E731
     times = data.times[data.train_idx].to(dt)
     pos = hermite_eval(as_t(nodes.key_times), as_t(nodes.pos_keys), as_t(nodes.pos_tangents), times)  # [N, T, 3]
+    fallback = as_t(nodes.p_dyn) if nodes.p_dyn is not None else torch.zeros(pos.shape[0], device=dev)
+    return trajectory_fg_score(data, pos, fallback, occlusion_tol)
+
+
+def trajectory_fg_score(data: TrainingData, pos: torch.Tensor, fallback: torch.Tensor,
+                        occlusion_tol: float = 0.2) -> torch.Tensor:
+    """Mean dynamic prior along trajectories ``pos [N, T, 3]`` (world positions at the
+    training frames ``data.train_idx``, in that order) -> [N] in [0, 1].
+
+    The prior is read at each position's projection over the frames where it is in view
+    and not behind the prior's depth (``occlusion_tol`` relative; merged nodes may sit a
+    little inside an object), so a static point that a moving object passes in front of
+    stays static. Points never in view get ``fallback [N]``. Requires ``data.fg``.
+    """
     n, h, w = pos.shape[0], data.height, data.width
+    dev = pos.device
     acc = torch.zeros(n, device=dev)
     cnt = torch.zeros(n, device=dev)
-    for j, f in enumerate(data.train_idx.tolist()):
+    for j, f in enumerate(data.train_idx.tolist()):  # frames, not nodes: T small projections
         uv, z = project(data.K[f], data.w2c[f], pos[:, j])
         px, py = uv[:, 0].floor().long(), uv[:, 1].floor().long()
         ok = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
@@ -179,8 +191,7 @@ def node_fg_score(data: TrainingData, nodes: B.NodeArrays, occlusion_tol: float 
             ok &= (dz <= 0) | (z <= dz * (1 + occlusion_tol))
         acc += torch.where(ok, data.fg[f, py, px], 0.0)
         cnt += ok
-    fallback = as_t(nodes.p_dyn) if nodes.p_dyn is not None else torch.zeros(n, device=dev)
-    return torch.where(cnt > 0, acc / cnt.clamp_min(1), fallback).clamp(0, 1)
+    return torch.where(cnt > 0, acc / cnt.clamp_min(1), fallback.to(dev)).clamp(0, 1)
 
 
 # ----------------------------------------------------------------------------------
@@ -335,6 +346,22 @@ class Trainer:
             canon[sel], idx[sel], wts[sel] = to_canonical(self.model, x, float(d.times[f]), self.model.bind_k)
         self.track_ids, self.track_canon, self.track_idx, self.track_w = pid, canon, idx, wts
         self.track_vis = vis
+
+    def _rebind(self):
+        """Refresh the binding of the Gaussians and of the lifted track points together.
+
+        The track points are bound like Gaussians (canonical position -> K nearest nodes).
+        Node densification renumbers the nodes (pruned ones leave gaps, spawned ones are
+        appended), so a binding kept from before addresses the wrong nodes, or none: the
+        fused deformation kernel does not bounds-check, and a run whose densification
+        pruned a node crashed with heap corruption.
+        """
+        m = self.model
+        m.rebind()
+        if self.track_canon is not None:
+            with torch.no_grad():
+                idx, w = bind_gaussians(self.track_canon, m.node_centers, m.node_radii().detach(), m.bind_k)
+            self.track_idx, self.track_w = idx, w.to(self.track_w.dtype)
 
     def _lr_schedule(self):
         if self.cfg.steps <= 1:
@@ -501,7 +528,7 @@ class Trainer:
                 m.log_scales.data[split] -= math.log(1.6)
             keep = m.opacities() > cfg.opacity_prune
             _edit_gaussians(m, self.opt, keep, extra or None)
-            m.rebind()
+            self._rebind()
             if cfg.node_densify:
                 self._densify_nodes()
             self._reset_densify_stats()
@@ -537,17 +564,23 @@ class Trainer:
                 par = parent[pick]
                 new_c = m.means[pick].detach().clone()
                 extra = {"node_log_radii": m.node_log_radii[par].detach().clone()}
+                follow, spawn_fg = self._spawn_motion(par, new_c)
                 if m.pos_keys is not None:
-                    # the new node starts with exactly its parent's rigid motion: at each
+                    # a following node starts with exactly its parent's rigid motion: at each
                     # key p_new = p_par + R_par (c_new − c_par) (without R_par the Gaussians
-                    # it takes over would jump by (I − R_par)(c_new − c_par))
+                    # it takes over would jump by (I − R_par)(c_new − c_par)); a static one
+                    # stays at c_new with the identity rotation
                     rk = m.rot_keys[par].detach()
                     shift = (new_c - m.node_centers[par]).unsqueeze(1).expand(-1, rk.shape[1], -1)
-                    extra["pos_keys"] = m.pos_keys[par].detach() + quat_apply(quat_normalize(rk), shift)
-                    extra["rot_keys"] = rk.clone()
+                    keys = m.pos_keys[par].detach() + quat_apply(quat_normalize(rk), shift)
+                    ident = torch.zeros_like(rk)
+                    ident[..., 0] = 1.0
+                    fol = follow[:, None, None]
+                    extra["pos_keys"] = torch.where(fol, keys, new_c.unsqueeze(1).expand_as(keys))
+                    extra["rot_keys"] = torch.where(fol, rk, ident)
                 new_centers = torch.cat([m.node_centers[keep], new_c])
                 new_pdyn = torch.cat([m.node_p_dyn[keep], m.node_p_dyn[par]])
-                new_fg = torch.cat([m.node_fg[keep], m.node_fg[par]])
+                new_fg = torch.cat([m.node_fg[keep], spawn_fg])
             elif bool(keep.all()):
                 return
             else:
@@ -559,7 +592,37 @@ class Trainer:
             k = m.graph_idx.shape[1] if m.graph_idx.numel() else 0
             if k:
                 m.graph_idx = node_graph(new_centers.cpu(), k)[0].to(self.device)
-            m.rebind()
+            self._rebind()
+
+    def _spawn_motion(self, par: torch.Tensor, new_c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Whether each node to spawn at ``new_c [S, 3]`` follows its parent ``par [S]``'s
+        motion, and its foreground score: ``(follow [S] bool, node_fg [S])``.
+
+        The Gaussians that ask for a node are those far from their nearest node, and near a
+        densely sampled moving object (MANI puts many small nodes there) that nearest node is
+        often a moving one even for static background. Inheriting its motion and score put
+        moving, unpenalised nodes into the background (in a MANI run ~100 of them, which
+        dragged ~8 % of the static Gaussians by 0.02-0.09 units). So the prior decides:
+        the spot is scored along the parent-following trajectory and at rest
+        (:func:`trajectory_fg_score`); the node follows when either score is >= 0.5 and is
+        static otherwise. Without a prior every node follows, with its parent's score.
+        """
+        m, d = self.model, self.data
+        follow = torch.ones(len(par), dtype=torch.bool, device=new_c.device)
+        if d.fg is None or not len(par):
+            return follow, m.node_fg[par]
+        frames = d.train_idx.tolist()
+        follow_pos = []
+        for f in frames:  # T evaluations of the node state, not a loop over nodes
+            p, q = m.node_state(float(d.times[f]))
+            follow_pos.append(p[par] + quat_apply(quat_normalize(q[par]), new_c - m.node_centers[par]))
+        follow_pos = torch.stack(follow_pos, 1).detach()  # [S, T, 3]
+        fallback = m.node_fg[par]
+        fg_follow = trajectory_fg_score(d, follow_pos, fallback)
+        fg_static = trajectory_fg_score(d, new_c.unsqueeze(1).expand_as(follow_pos), fallback)
+        follow = (fg_follow >= 0.5) | (fg_static >= 0.5)
+        score = torch.where(fg_follow >= 0.5, fg_follow, torch.where(follow, fallback, fg_static))
+        return follow, score
 
     def _reset_opacity(self):
         with torch.no_grad():
@@ -690,7 +753,7 @@ class Trainer:
                 if cfg.densify_from <= self.step < cfg.densify_until and self.step % cfg.densify_every == 0:
                     self._densify()
                 elif cfg.rebind_every and self.step % cfg.rebind_every == 0:
-                    self.model.rebind()
+                    self._rebind()
                 if cfg.opacity_reset_every and self.step % cfg.opacity_reset_every == 0 and self.step < cfg.densify_until:
                     self._reset_opacity()
                 if self.step % cfg.log_every == 0 or self.step == cfg.steps:
