@@ -48,6 +48,10 @@ def add_arguments(parser):
                         help="training runs at a time (default 1; >1 only on a machine with cores/GPU to spare, "
                              "and then train_s/its_per_s/peak_rss_mb are measured under that load)")
     parser.add_argument("--config", help="JSON file of TrainConfig overrides passed to every training run")
+    parser.add_argument("--oracle", default="",
+                        help="generated scenes only: train on ground-truth priors instead of the weight-free ones, "
+                             "a comma list of depth,mask,tracks (engine/bench/oracle.py); separates what the method "
+                             "does from what the priors give it")
 
 
 def generate_scene(out: Path, preset: str, seed: int) -> Path:
@@ -64,7 +68,7 @@ def generate_scene(out: Path, preset: str, seed: int) -> Path:
 
 
 def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threads=None, device=None,
-                     config=None) -> dict:
+                     config=None, priors=None) -> dict:
     """Run ``python -m engine train`` in a child; returns its result event plus wall_s, peak_rss_mb."""
     cmd = [sys.executable, "-m", "engine", "train", str(clip), "--out", str(out), "--init", init, "--motion", motion,
            "--cache", str(cache), "--overwrite", "--jsonl", "--preset", "preview"]
@@ -76,6 +80,8 @@ def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threa
         cmd += ["--device", device]
     if config:
         cmd += ["--config", str(config)]
+    for key, path in (priors or {}).items():  # precomputed priors, e.g. {"depth_path": ...}
+        cmd += ["--" + key.replace("_", "-"), str(path)]
     out_text, err_text, code, wall, rss = run_child(cmd, REPO)
     result, error = None, None
     for line in out_text.splitlines():
@@ -94,12 +100,12 @@ def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threa
 
 
 def run_one(clip, name: str, init: str, motion: str, work: Path, steps=None, threads=None, device=None,
-            config=None) -> dict:
+            config=None, priors=None) -> dict:
     from ..bundle import read_scene
     from ..commands.eval import evaluate_bundle
 
     out = work / "bundles" / f"{name}_{init}_{motion}"
-    res = train_subprocess(clip, out, init, motion, work / "cache" / name, steps, threads, device, config)
+    res = train_subprocess(clip, out, init, motion, work / "cache" / name, steps, threads, device, config, priors)
     stats = read_scene(out / "scene.json").get("stats", {})
     ev, ev0 = res.get("eval") or {}, res.get("eval_init") or {}
     try:  # `engine train` writes eval.json with its report; evaluate only when it did not
@@ -129,11 +135,22 @@ def run(args) -> list[dict]:
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
         scenes = [(f"{args.preset}_seed{s}", generate_scene(work / f"{args.preset}_seed{s}", args.preset, s))
                   for s in seeds]
+    oracle = sorted({k.strip() for k in (args.oracle or "").split(",") if k.strip()})
+    priors = {}
+    if oracle:
+        from .oracle import write_oracle_priors
+
+        tag = "oracle_" + "_".join(oracle)
+        for name, clip in scenes:
+            priors[name] = write_oracle_priors(clip, work / tag / name, oracle)
+        scenes = [(f"{name}+{tag}", clip) for name, clip in scenes]  # own bundles and priors cache
+        priors = {f"{name}+{tag}": p for name, p in priors.items()}
     jobs = [(name, clip, init, motion) for name, clip in scenes for init, motion in configs]
 
     def one(job):
         name, clip, init, motion = job
-        row = run_one(clip, name, init, motion, work, args.steps, args.threads, args.device, args.config)
+        row = run_one(clip, name, init, motion, work, args.steps, args.threads, args.device, args.config,
+                      priors.get(name))
         print(json.dumps({"progress": row}), file=sys.stderr, flush=True)
         return row
 

@@ -33,3 +33,12 @@ def test_bench_quality_rows(tmp_path):
         assert 5 < row["psnr"] < 60 and row["peak_rss_mb"] > 50 and row["gaussians"] > 0
     # priors computed once: both configs used the same cache folder
     assert len(list((tmp_path / "work" / "cache").iterdir())) == 1
+    # --oracle: the same bench on ground-truth priors, with its own bundles and priors cache
+    r = subprocess.run([sys.executable, "-m", "engine.bench", "quality", str(tmp_path / "clip"), "--steps", "3",
+                        "--configs", "fps+spline", "--oracle", "depth,tracks,mask", "--work", str(tmp_path / "work"),
+                        "--json"], cwd=REPO, capture_output=True, text=True, timeout=400)
+    assert r.returncode == 0, r.stderr[-3000:]
+    (row,) = [json.loads(l) for l in r.stdout.splitlines() if l.startswith("{")]
+    assert row["scene"] == "clip+oracle_depth_mask_tracks" and 5 < row["psnr"] < 60
+    assert (tmp_path / "work" / "oracle_depth_mask_tracks" / "clip" / "tracks.npz").is_file()
+    assert len(list((tmp_path / "work" / "cache").iterdir())) == 2
