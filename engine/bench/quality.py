@@ -14,6 +14,12 @@ cache, so priors are computed once per scene. The held-out PSNR/SSIM come from t
 training run's final evaluation (the trained model itself); ``psnr_bundle`` re-renders
 the written bundle from disk (``engine eval``), which for ``mlp`` motion is the exported
 spline approximation of the MLP. ``lpips`` is always null here (no bundled LPIPS model).
+
+``--train-seeds 0,1,2`` trains every configuration once per training seed and appends a
+``mean`` row per scene and configuration with ``psnr_std`` (the same configuration spreads
+by ~0.1-0.2 dB over training seeds on the generated scenes, so single-seed differences
+of that size rank nothing). ``--oracle depth,mask,tracks`` trains on the generated scene's
+ground-truth priors (:mod:`engine.bench.oracle`) instead of the weight-free ones.
 """
 
 from __future__ import annotations
@@ -48,6 +54,10 @@ def add_arguments(parser):
                         help="training runs at a time (default 1; >1 only on a machine with cores/GPU to spare, "
                              "and then train_s/its_per_s/peak_rss_mb are measured under that load)")
     parser.add_argument("--config", help="JSON file of TrainConfig overrides passed to every training run")
+    parser.add_argument("--train-seeds", default="",
+                        help="comma list of training seeds (e.g. 0,1,2): every configuration trains once per seed "
+                             "and a 'mean' row per scene and configuration follows (psnr_std = spread over seeds); "
+                             "differences between configurations below that spread are noise")
     parser.add_argument("--oracle", default="",
                         help="generated scenes only: train on ground-truth priors instead of the weight-free ones, "
                              "a comma list of depth,mask,tracks (engine/bench/oracle.py); separates what the method "
@@ -68,7 +78,7 @@ def generate_scene(out: Path, preset: str, seed: int) -> Path:
 
 
 def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threads=None, device=None,
-                     config=None, priors=None) -> dict:
+                     config=None, priors=None, seed=None) -> dict:
     """Run ``python -m engine train`` in a child; returns its result event plus wall_s, peak_rss_mb."""
     cmd = [sys.executable, "-m", "engine", "train", str(clip), "--out", str(out), "--init", init, "--motion", motion,
            "--cache", str(cache), "--overwrite", "--jsonl", "--preset", "preview"]
@@ -80,6 +90,8 @@ def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threa
         cmd += ["--device", device]
     if config:
         cmd += ["--config", str(config)]
+    if seed is not None:
+        cmd += ["--seed", str(seed)]
     for key, path in (priors or {}).items():  # precomputed priors, e.g. {"depth_path": ...}
         cmd += ["--" + key.replace("_", "-"), str(path)]
     out_text, err_text, code, wall, rss = run_child(cmd, REPO)
@@ -100,19 +112,20 @@ def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threa
 
 
 def run_one(clip, name: str, init: str, motion: str, work: Path, steps=None, threads=None, device=None,
-            config=None, priors=None) -> dict:
+            config=None, priors=None, seed=None) -> dict:
     from ..bundle import read_scene
     from ..commands.eval import evaluate_bundle
 
-    out = work / "bundles" / f"{name}_{init}_{motion}"
-    res = train_subprocess(clip, out, init, motion, work / "cache" / name, steps, threads, device, config, priors)
+    out = work / "bundles" / (f"{name}_{init}_{motion}" + ("" if seed is None else f"_seed{seed}"))
+    res = train_subprocess(clip, out, init, motion, work / "cache" / name, steps, threads, device, config, priors,
+                           seed)
     stats = read_scene(out / "scene.json").get("stats", {})
     ev, ev0 = res.get("eval") or {}, res.get("eval_init") or {}
     try:  # `engine train` writes eval.json with its report; evaluate only when it did not
         bundle_eval = json.loads((out / "eval.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         bundle_eval = evaluate_bundle(out, clip, write=True)
-    return {"scene": name, "init": init, "motion": motion,
+    return {"scene": name, "init": init, "motion": motion, **({} if seed is None else {"train_seed": seed}),
             "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": None,
             "psnr_init": ev0.get("psnr"), "ssim_init": ev0.get("ssim"),
             "psnr_bundle": bundle_eval["mean"]["psnr"], "masked_psnr": bundle_eval["mean"]["masked_psnr"],
@@ -145,17 +158,40 @@ def run(args) -> list[dict]:
             priors[name] = write_oracle_priors(clip, work / tag / name, oracle)
         scenes = [(f"{name}+{tag}", clip) for name, clip in scenes]  # own bundles and priors cache
         priors = {f"{name}+{tag}": p for name, p in priors.items()}
-    jobs = [(name, clip, init, motion) for name, clip in scenes for init, motion in configs]
+    seeds = [int(x) for x in args.train_seeds.split(",") if x.strip()] or [None]
+    jobs = [(name, clip, init, motion, seed) for name, clip in scenes for init, motion in configs for seed in seeds]
 
     def one(job):
-        name, clip, init, motion = job
+        name, clip, init, motion, seed = job
         row = run_one(clip, name, init, motion, work, args.steps, args.threads, args.device, args.config,
-                      priors.get(name))
+                      priors.get(name), seed)
         print(json.dumps({"progress": row}), file=sys.stderr, flush=True)
         return row
 
     if args.jobs <= 1:
-        return [one(j) for j in jobs]
-    from concurrent.futures import ThreadPoolExecutor  # the runs are subprocesses: threads only wait
-    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        return list(pool.map(one, jobs))
+        rows = [one(j) for j in jobs]
+    else:
+        from concurrent.futures import ThreadPoolExecutor  # the runs are subprocesses: threads only wait
+        with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+            rows = list(pool.map(one, jobs))
+    return rows + (seed_means(rows) if len(seeds) > 1 else [])
+
+
+def seed_means(rows: list[dict]) -> list[dict]:
+    """One ``train_seed = 'mean'`` row per (scene, init, motion): the mean of every metric over
+    the training seeds and ``psnr_std``, their standard deviation (ddof 1)."""
+    import statistics
+
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["init"], r["motion"]), []).append(r)
+    out = []
+    for (scene, init, motion), rs in groups.items():
+        row = {"scene": scene, "init": init, "motion": motion, "train_seed": "mean"}
+        for key in ("psnr", "ssim", "psnr_init", "masked_psnr", "train_s", "its_per_s", "nodes"):
+            vals = [r[key] for r in rs if isinstance(r.get(key), (int, float))]
+            row[key] = statistics.fmean(vals) if vals else None
+        ps = [r["psnr"] for r in rs if isinstance(r.get("psnr"), (int, float))]
+        row["psnr_std"] = statistics.stdev(ps) if len(ps) > 1 else None
+        out.append(row)
+    return out

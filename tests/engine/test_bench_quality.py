@@ -15,6 +15,19 @@ REQUIRED = ("scene", "init", "motion", "psnr", "ssim", "lpips", "psnr_init", "tr
             "nodes", "peak_rss_mb")
 
 
+def test_seed_means_average_each_configuration_over_training_seeds():
+    from engine.bench.quality import seed_means
+
+    rows = [{"scene": "a", "init": "mani", "motion": "spline", "train_seed": s, "psnr": p, "ssim": 0.5,
+             "masked_psnr": None, "nodes": 10 + s} for s, p in ((0, 20.0), (1, 21.0), (2, 22.0))]
+    rows.append({"scene": "a", "init": "fps", "motion": "mlp", "train_seed": 0, "psnr": 19.0, "ssim": 0.4})
+    mani, fps = seed_means(rows)
+    assert (mani["init"], mani["train_seed"], fps["init"]) == ("mani", "mean", "fps")
+    assert mani["psnr"] == pytest.approx(21.0) and mani["psnr_std"] == pytest.approx(1.0)
+    assert mani["nodes"] == pytest.approx(11.0) and mani["masked_psnr"] is None
+    assert fps["psnr"] == 19.0 and fps["psnr_std"] is None
+
+
 def test_bench_quality_rows(tmp_path):
     pytest.importorskip("bpy")
     gen = subprocess.run([sys.executable, "tools/synth_scene.py", "--out", str(tmp_path / "clip"), "--preset", "tiny",
