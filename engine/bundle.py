@@ -458,6 +458,35 @@ def load_bundle(path: str | os.PathLike) -> Bundle:
     return Bundle(path=path, scene=scene, nodes=nodes, gaussians=gaussians)
 
 
+# what a run derives from its bundle; stale once the bundle is replaced (the priors cache
+# in ``cache/`` is keyed by its inputs and stays valid)
+RUN_OUTPUTS = ("eval.json", "report", "checkpoints")
+
+
+def clear_run_outputs(path: str | os.PathLike) -> list[str]:
+    """Remove :data:`RUN_OUTPUTS` from a bundle folder about to be replaced (``--overwrite``).
+
+    Without this an overwritten run kept the earlier run's ``eval.json`` (which the report
+    and the quality bench then read as the new run's metrics) and its checkpoint (which a
+    ``--resume`` after an early Cancel would have continued). Only these names are removed;
+    returns the ones that existed.
+    """
+    import shutil
+
+    path = Path(path)
+    removed = []
+    for name in RUN_OUTPUTS:
+        p = path / name
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        elif p.exists() or p.is_symlink():
+            p.unlink()
+        else:
+            continue
+        removed.append(name)
+    return removed
+
+
 def check_output_dir(path: str | os.PathLike, overwrite: bool = False, resume: bool = False) -> Path:
     """Refuse to write into a folder that already holds results unless asked to.
 

@@ -243,6 +243,8 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
 
     reporter = reporter or Reporter(quiet=True)
     out_dir = B.check_output_dir(out_dir, overwrite=overwrite, resume=resume)
+    if overwrite and not resume:
+        B.clear_run_outputs(out_dir)
     clip = open_clip(clip_path, reporter, **(clip_options or {}))
     prep = prepare(clip, cfg, prior_config, cache_dir=cache_dir or Path(out_dir) / "cache", reporter=reporter)
     nodes_path = Path(out_dir) / B.NODES_FILE

@@ -224,6 +224,8 @@ def write_finetuned(bundle, model, summary: dict, out=None, overwrite: bool = Fa
             from ..errors import InputError
 
             raise InputError("--out is the input bundle", dest, "leave out --out to update the bundle in place")
+        if overwrite:
+            B.clear_run_outputs(dest)
         dest.mkdir(parents=True, exist_ok=True)
         with atomic_path(dest / B.NODES_FILE) as tmp:
             shutil.copyfile(src / B.NODES_FILE, tmp)  # the locked motion, byte for byte

@@ -23,6 +23,8 @@ def run(args, reporter):
 
     cfg = config_from_args(args)
     out = B.check_output_dir(args.out, overwrite=args.overwrite)
+    if args.overwrite:
+        B.clear_run_outputs(out)
     clip = open_clip(args.clip, reporter, **clip_options(args))
     prep = prepare(clip, cfg, prior_config_from_args(args), cache_dir=args.cache or Path(out) / "cache",
                    reporter=reporter)

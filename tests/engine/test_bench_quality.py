@@ -46,6 +46,15 @@ def test_bench_quality_rows(tmp_path):
         assert 5 < row["psnr"] < 60 and row["peak_rss_mb"] > 50 and row["gaussians"] > 0
     # priors computed once: both configs used the same cache folder
     assert len(list((tmp_path / "work" / "cache").iterdir())) == 1
+    # the bench re-runs into the same bundles (--overwrite): the metrics it reads from each
+    # bundle's eval.json must be the new run's, not the earlier run's
+    r = subprocess.run([sys.executable, "-m", "engine.bench", "quality", str(tmp_path / "clip"), "--steps", "12",
+                        "--configs", "mani+spline", "--work", str(tmp_path / "work"), "--json"],
+                       cwd=REPO, capture_output=True, text=True, timeout=400)
+    assert r.returncode == 0, r.stderr[-3000:]
+    (again,) = [json.loads(l) for l in r.stdout.splitlines() if l.startswith("{")]
+    assert again["steps"] == 12 and again["psnr"] != rows[0]["psnr"]
+    assert again["psnr_bundle"] == pytest.approx(again["psnr"], abs=1e-3)
     # --oracle: the same bench on ground-truth priors, with its own bundles and priors cache
     r = subprocess.run([sys.executable, "-m", "engine.bench", "quality", str(tmp_path / "clip"), "--steps", "3",
                         "--configs", "fps+spline", "--oracle", "depth,tracks,mask", "--work", str(tmp_path / "work"),

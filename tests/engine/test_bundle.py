@@ -119,6 +119,21 @@ def test_scene_validation_names_file(tmp_path, scene, msg):
     assert "scene.json" in str(info.value)
 
 
+def test_clear_run_outputs_removes_only_what_a_run_derives(tmp_path):
+    out = tmp_path / "out"
+    (out / "report").mkdir(parents=True)
+    (out / "report" / "report.html").write_text("old")
+    (out / "checkpoints").mkdir()
+    (out / "checkpoints" / "checkpoint.pt").write_bytes(b"old")
+    (out / "eval.json").write_text("{}")
+    (out / "cache").mkdir()
+    (out / "cache" / "depth.npz").write_bytes(b"keep")
+    (out / "notes.txt").write_text("the user's")
+    assert sorted(B.clear_run_outputs(out)) == ["checkpoints", "eval.json", "report"]
+    assert sorted(p.name for p in out.iterdir()) == ["cache", "notes.txt"]
+    assert B.clear_run_outputs(out) == []
+
+
 def test_output_dir_is_never_clobbered(tmp_path):
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "scene.json").write_text(json.dumps({}))
