@@ -35,7 +35,8 @@ class LossWeights:
     arap: float = 1.0         # as-rigid-as-possible on the node graph
     velocity: float = 1e-3    # mild spline velocity regulariser
     acceleration: float = 1e-2  # mild spline acceleration regulariser
-    static: float = 3.0       # motion of nodes the dynamic prior calls static, weighted by (1 - score)
+    static: float = 3.0       # motion of nodes the dynamic prior calls static, weighted by (1 - score)^static_power
+    static_power: float = 1.0  # >1 spares ambiguous nodes (score ~0.5: thin moving parts) more than static ones
 
 
 @dataclass

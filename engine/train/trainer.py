@@ -470,7 +470,7 @@ class Trainer:
         Gaussians far from its centre.
         """
         m = self.model
-        s = (1.0 - m.node_fg).clamp(0, 1)
+        s = (1.0 - m.node_fg).clamp(0, 1) ** self.cfg.loss.static_power
         arm = (2.0 * m.node_radii().detach() / m.extent) ** 2
         if m.pos_keys is not None:
             pk = m.pos_keys / m.extent

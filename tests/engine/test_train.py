@@ -158,6 +158,32 @@ def test_static_motion_term_pulls_only_static_nodes_and_spares_constant_offsets(
     assert float(g[3].max()) > 10 * float(g[20:].max())  # the moving blob nodes are barely pulled
 
 
+def test_static_power_spares_ambiguous_nodes_more_than_static_ones(tmp_path, scene):
+    """``loss.static_power`` reshapes the static-motion weight ``(1 - score)^p``: the same
+    wobble on a node the prior half-calls moving (score 0.5, e.g. a node beside a thin moving
+    part) costs 2^-p of what it costs on a static node (score 0)."""
+    data, truth = scene
+    cost = {}
+    for power in (1.0, 3.0):
+        trainer = Trainer(data, make_nodes(truth), _cfg(loss={"static": 1.0, "static_power": power}),
+                          tmp_path / f"p{power}")
+        m = trainer.model
+        with torch.no_grad():
+            m.node_fg[:] = 1.0
+            m.node_fg[3], m.node_fg[4] = 0.0, 0.5
+        pos, rot = m.node_state(0.5)
+        base = float(trainer._static_motion(pos, rot))
+        for node in (3, 4):
+            with torch.no_grad():
+                m.pos_keys[node, 1] += 0.2
+            cost[power, node] = float(trainer._static_motion(pos, rot)) - base
+            with torch.no_grad():
+                m.pos_keys[node, 1] -= 0.2
+    for power in (1.0, 3.0):
+        assert cost[power, 3] > 0
+        assert cost[power, 4] / cost[power, 3] == pytest.approx(0.5 ** power, rel=1e-3)
+
+
 def test_spawned_nodes_start_with_their_parents_rigid_motion(tmp_path, scene):
     """Node densification must not move any Gaussian: under one rigid motion shared by every
     node (a rotation as well as a shift), deformed positions are the same before and after."""
