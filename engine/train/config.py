@@ -37,6 +37,7 @@ class LossWeights:
     acceleration: float = 1e-2  # mild spline acceleration regulariser
     static: float = 3.0       # motion of nodes the dynamic prior calls static, weighted by (1 - score)^static_power
     static_power: float = 1.0  # >1 spares ambiguous nodes (score ~0.5: thin moving parts) more than static ones
+    static_init: float = 0.0  # 1: measure that motion relative to each node's initial (track-fitted) trajectory
 
 
 @dataclass

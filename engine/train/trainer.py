@@ -295,6 +295,9 @@ class Trainer:
         self.train_seconds = 0.0
         self.initial_eval: dict | None = None
         self.track_canon = None
+        # initial keys of every node [N, K, 3] / [N, K, 4] (spline / per-frame motion): the
+        # reference of the static-motion term when loss.static_init > 0
+        self.static_ref = None
         # a PhaseTimer (engine/train/phases.py) when a bench profiles the step; None in runs
         self.phases = None
         if resume and self.ckpt_path.exists():
@@ -309,6 +312,8 @@ class Trainer:
             self.opt = make_optimizer(self.model, self.cfg)
             self._reset_densify_stats()
             self._prepare_tracks()
+            if self.model.pos_keys is not None:
+                self.static_ref = (self.model.pos_keys.detach().clone(), self.model.rot_keys.detach().clone())
 
     # ---------------------------------------------------------------- helpers
     def _reset_densify_stats(self):
@@ -467,14 +472,21 @@ class Trainer:
         (``state_t1`` = positions and rotations there) as ``½|x(t) − x(t1)|²``
         (``E|x(t) − x(t1)|² = 2 Var x``). Rotation is measured as the displacement it causes
         at the node's radius (``2ρ|Δq|``), so a large static node pays for turning the
-        Gaussians far from its centre.
+        Gaussians far from its centre. With ``loss.static_init = a > 0`` keyed motion is
+        measured relative to ``a`` times the node's initial keys (:attr:`static_ref`).
         """
         m = self.model
         s = (1.0 - m.node_fg).clamp(0, 1) ** self.cfg.loss.static_power
         arm = (2.0 * m.node_radii().detach() / m.extent) ** 2
         if m.pos_keys is not None:
-            pk = m.pos_keys / m.extent
-            q = quat_normalize(m.rot_keys)
+            pk, q = m.pos_keys, quat_normalize(m.rot_keys)
+            a = self.cfg.loss.static_init
+            if a > 0 and self.static_ref is not None:
+                # motion beyond the initial trajectory: a node on a thin moving part that the
+                # prior half-calls static keeps the motion its tracks gave it
+                pk = pk - a * self.static_ref[0]
+                q = q - a * quat_normalize(self.static_ref[1])
+            pk = pk / m.extent
             e = ((pk - pk.mean(1, keepdim=True)) ** 2).sum(-1).mean(1)
             e = e + ((q - q.mean(1, keepdim=True)) ** 2).sum(-1).mean(1) * arm
         else:
@@ -585,6 +597,12 @@ class Trainer:
                 return
             else:
                 new_centers, new_pdyn, new_fg = m.node_centers[keep], m.node_p_dyn[keep], m.node_fg[keep]
+            if self.static_ref is not None:  # spawned nodes: their starting keys are their reference
+                ref_p, ref_q = self.static_ref[0][keep], self.static_ref[1][keep]
+                if extra is not None and "pos_keys" in extra:
+                    ref_p = torch.cat([ref_p, extra["pos_keys"]])
+                    ref_q = torch.cat([ref_q, extra["rot_keys"]])
+                self.static_ref = (ref_p.contiguous(), ref_q.contiguous())
             _edit_gaussians(m, self.opt, keep, extra, names=NODE_PARAMS)
             m.node_centers = new_centers.contiguous()
             m.node_p_dyn = new_pdyn.contiguous()
@@ -652,6 +670,7 @@ class Trainer:
             "tracks": None if self.track_canon is None else {
                 "ids": self.track_ids.cpu(), "canon": self.track_canon.cpu(), "idx": self.track_idx.cpu(),
                 "w": self.track_w.cpu(), "vis": self.track_vis.cpu()},
+            "static_ref": None if self.static_ref is None else [x.cpu() for x in self.static_ref],
         }
 
     def save_checkpoint(self) -> Path:
@@ -696,6 +715,8 @@ class Trainer:
         self.history = [{"step": int(s), "loss": float(lo), "psnr": float(p)} for s, lo, p in state["history"]]
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self.initial_eval = dict(state.get("initial_eval") or {}) or None
+        ref = state.get("static_ref")  # absent in checkpoints from before static_init
+        self.static_ref = None if ref is None else tuple(x.to(dev) for x in ref)
         tracks = state.get("tracks")
         if tracks is not None:
             self.track_ids, self.track_canon = tracks["ids"].to(dev), tracks["canon"].to(dev)

@@ -184,6 +184,38 @@ def test_static_power_spares_ambiguous_nodes_more_than_static_ones(tmp_path, sce
         assert cost[power, 4] / cost[power, 3] == pytest.approx(0.5 ** power, rel=1e-3)
 
 
+def test_static_init_measures_motion_beyond_the_initial_trajectory(tmp_path, scene):
+    """``loss.static_init = 1``: a node the prior half-calls static keeps the motion it was
+    initialised with for free, and pays only for moving away from it; the reference keys
+    follow node densification and survive a checkpoint."""
+    data, truth = scene
+    for a in (0.0, 1.0):
+        trainer = Trainer(data, make_nodes(truth), _cfg(loss={"static": 1.0, "static_init": a}), tmp_path / f"i{a}")
+        m = trainer.model
+        with torch.no_grad():
+            m.node_fg[:] = 0.0  # every node counts as static
+        pos, rot = m.node_state(0.5)
+        blob = float(trainer._static_motion(pos, rot).detach())  # the blob nodes move along their initial splines
+        if a == 0:
+            assert blob > 1e-3
+        else:
+            assert blob < 1e-9
+            with torch.no_grad():
+                m.pos_keys[22, 2] += 0.2  # leaving the initial trajectory costs
+            assert float(trainer._static_motion(pos, rot)) > 1e-3
+    n0 = trainer.model.num_nodes
+    trainer._densify_nodes()
+    m = trainer.model
+    assert m.num_nodes > n0
+    assert trainer.static_ref[0].shape == m.pos_keys.shape and trainer.static_ref[1].shape == m.rot_keys.shape
+    spawned = torch.arange(m.num_nodes) >= n0
+    assert torch.equal(trainer.static_ref[0][spawned], m.pos_keys.detach()[spawned])
+    path = trainer.save_checkpoint()
+    again = Trainer(data, make_nodes(truth), _cfg(loss={"static": 1.0, "static_init": 1.0}), path.parent.parent,
+                    resume=True)
+    assert torch.equal(again.static_ref[0], trainer.static_ref[0].cpu())
+
+
 def test_spawned_nodes_start_with_their_parents_rigid_motion(tmp_path, scene):
     """Node densification must not move any Gaussian: under one rigid motion shared by every
     node (a rotation as well as a shift), deformed positions are the same before and after."""
