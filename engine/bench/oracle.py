@@ -15,7 +15,7 @@ give (in the formats of :mod:`engine.priors.precomputed`).
 
 Frames are the ``left_*`` (train camera) frames in time order, at the scene's native
 size, which must equal the training size (the generated scenes are 240 px wide, the
-``preview`` width).
+``preview`` width; the precomputed-prior loaders refuse a mismatch, naming the file).
 """
 
 from __future__ import annotations
@@ -43,13 +43,13 @@ def grid_seed_tracks(F: int, H: int, W: int, cell: float = 6.0, query_frames: in
     return Tracks(xy=xy, visible=vis, confidence=vis.astype(np.float32), query_frame=q)
 
 
-def write_oracle_priors(scene_dir, out_dir, kinds=KINDS, width: int | None = None) -> dict:
+def write_oracle_priors(scene_dir, out_dir, kinds=KINDS) -> dict:
     """Write the GT priors named in ``kinds`` under ``out_dir``.
 
     Returns ``{"depth_path"|"mask_path"|"tracks_path": Path}`` for the kinds written
     (the keys are ``engine train``'s option names without the leading dashes).
     """
-    from ..fsutil import atomic_save_npz, atomic_write_bytes
+    from ..fsutil import atomic_path, atomic_save_npz
     from .priors import gt_tracks, load_scene
 
     bad = sorted(set(kinds) - set(KINDS))
@@ -58,18 +58,12 @@ def write_oracle_priors(scene_dir, out_dir, kinds=KINDS, width: int | None = Non
     train, _, gt = load_scene(scene_dir)
     order = np.argsort(np.asarray(train.times), kind="stable")  # the priors' frame order
     F, H, W = gt.depth.shape
-    if width is not None and width != W:
-        raise ValueError(f"oracle priors need the training width ({width}) to equal the scene's ({W})")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     paths = {}
 
     def save_npy(name, arr):
-        import io
-
-        buf = io.BytesIO()
-        np.save(buf, arr, allow_pickle=False)
-        atomic_write_bytes(out / name, buf.getvalue())
+        with atomic_path(out / name) as tmp:  # keeps the .npy suffix, so np.save adds none
+            np.save(tmp, arr, allow_pickle=False)
         return out / name
 
     if "depth" in kinds:

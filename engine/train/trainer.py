@@ -634,7 +634,7 @@ class Trainer:
         for f in frames:  # T evaluations of the node state, not a loop over nodes
             p, q = m.node_state(float(d.times[f]))
             follow_pos.append(p[par] + quat_apply(quat_normalize(q[par]), new_c - m.node_centers[par]))
-        follow_pos = torch.stack(follow_pos, 1).detach()  # [S, T, 3]
+        follow_pos = torch.stack(follow_pos, 1)  # [S, T, 3] (densification runs under no_grad)
         fallback = m.node_fg[par]
         fg_follow = trajectory_fg_score(d, follow_pos, fallback)
         fg_static = trajectory_fg_score(d, new_c.unsqueeze(1).expand_as(follow_pos), fallback)
