@@ -13,11 +13,21 @@ Each iteration (vectorised over all voxels):
    ``r = r_min + (1 − p_dyn)(r_max − r_min)``;
 5. merge, per voxel, the ``floor(r · |A_C|)`` most similar pairs (exactly that many; floor
    so a voxel never merges more than requested), ToMe-style: B absorbs all its merged A's
-   with size-weighted means of position, token, prior and source time;
+   with size-weighted means of token and prior; the merged node keeps the position and
+   source time of one representative (``merge``, below);
 6. grow ``v += Δv``; stop at the node budget. The iteration that would cross the budget
    keeps only the globally most similar of its selected pairs, landing exactly on it.
 
 Voxel sizes are fractions of the candidates' bounding-box diagonal.
+
+Where a merged node sits (``ManiConfig.merge``): the paper merges a pair "by retaining one
+representative node". Candidates come from several keyframes, so on a moving object one
+voxel can hold patches of the same part seen at different times; their size-weighted
+centroid (``"mean"``, ToMe's choice for tokens) lies on the part at no time at all, and the
+node's track-fitted trajectory and dynamic score then start off the surface. ``"medoid"``
+(default) keeps, per final node, the member candidate nearest the cluster's centroid with
+that candidate's source time: a real patch centre at a real frame, central in its cluster.
+``"representative"`` keeps B's position and time at every merge (the literal ToMe keep).
 """
 
 from __future__ import annotations
@@ -42,13 +52,14 @@ class ManiConfig:
     r_max: float = 1.0          #: merge fraction of a fully static voxel
     max_iters: int = 500        #: safety stop
     seed: int = 0               #: A/B split shuffle seed
+    merge: str = "medoid"       #: node position: "medoid" | "representative" | "mean" (module doc)
 
 
 @dataclass
 class ManiResult:
-    """positions (N,3), tokens (N,D), fg (N,), sizes (N,) candidates per node, time (N,)
-    size-weighted source time, p_dyn (N,), assignment (M,) node index of every candidate,
-    iterations int, history list of node counts per iteration."""
+    """positions (N,3) and time (N,) source time of each node (per ``ManiConfig.merge``),
+    tokens (N,D), fg (N,), sizes (N,) candidates per node, p_dyn (N,), assignment (M,) node
+    index of every candidate, iterations int, history list of node counts per iteration."""
 
     positions: torch.Tensor
     tokens: torch.Tensor
@@ -154,6 +165,8 @@ def mani_compress(positions: torch.Tensor, tokens: torch.Tensor, fg: torch.Tenso
     -------
     ManiResult (N = min(M, budget) nodes unless ``max_iters`` was hit).
     """
+    if config.merge not in ("medoid", "representative", "mean"):
+        raise ValueError(f"unknown MANI merge {config.merge!r}; expected 'medoid', 'representative' or 'mean'")
     gen = torch.Generator().manual_seed(config.seed)
     m0 = positions.shape[0]
     pos = positions.float().clone()
@@ -215,8 +228,12 @@ def mani_compress(positions: torch.Tensor, tokens: torch.Tensor, fg: torch.Tenso
         # fields, token sums updated in place only on the merged rows.
         wsum = torch.zeros(nn_).index_add_(0, mapping, size)
         mean = lambda x: torch.zeros(nn_).index_add_(0, mapping, x * size) / wsum  # noqa: E731
-        pos = torch.zeros(nn_, 3).index_add_(0, mapping, pos * size.unsqueeze(1)) / wsum.unsqueeze(1)
-        prior, tim, p_dyn = mean(prior), mean(tim), mean(p_dyn)
+        if config.merge == "representative":  # B survives with its own position and time
+            pos, tim = pos[survive], tim[survive]
+        else:
+            pos = torch.zeros(nn_, 3).index_add_(0, mapping, pos * size.unsqueeze(1)) / wsum.unsqueeze(1)
+            tim = mean(tim)
+        prior, p_dyn = mean(prior), mean(p_dyn)
         merged = tok_sum[survive]
         merged.index_add_(0, new_id[cb], tok_sum[ca])
         tok_sum = merged
@@ -226,4 +243,24 @@ def mani_compress(positions: torch.Tensor, tokens: torch.Tensor, fg: torch.Tenso
         size = wsum
         assign = mapping[assign]
         history.append(nn_)
+    if config.merge == "medoid" and m0 > 0:
+        pos, tim = _medoids(positions.float(), pos, assign, torch.zeros(m0) if time is None else time.float())
     return ManiResult(pos, tok_sum / size.unsqueeze(1), prior, size, tim, p_dyn, assign, it, history)
+
+
+def _medoids(cand_pos: torch.Tensor, centroid: torch.Tensor, assign: torch.Tensor,
+             cand_time: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per node the member candidate nearest its centroid.
+
+    cand_pos (M, 3), cand_time (M,), centroid (N, 3), assign (M,) node of every candidate
+    -> positions (N, 3), time (N,).
+    """
+    n = centroid.shape[0]
+    d = (cand_pos - centroid[assign]).square().sum(1)  # [M]
+    best = torch.full((n,), float("inf")).scatter_reduce(0, assign, d, "amin")
+    is_best = d <= best[assign]
+    idx = torch.arange(cand_pos.shape[0])
+    # ties: the lowest candidate index wins (deterministic)
+    pick = torch.full((n,), cand_pos.shape[0], dtype=torch.long).scatter_reduce(
+        0, assign[is_best], idx[is_best], "amin")
+    return cand_pos[pick], cand_time[pick]

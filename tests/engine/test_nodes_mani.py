@@ -65,12 +65,12 @@ def test_terminates_exactly_at_budget_and_conserves_mass():
     pos = torch.rand(5000, 3, generator=g)
     tok = torch.randn(5000, 24, generator=g)
     fg = (pos[:, 0] < 0.3).float()
-    res = mani_compress(pos, tok, fg, ManiConfig(budget=300))
+    res = mani_compress(pos, tok, fg, ManiConfig(budget=300, merge="mean"))
     assert res.positions.shape[0] == 300
     assert res.history[-1] == 300 and all(a >= b for a, b in zip(res.history, res.history[1:]))
     assert torch.isclose(res.sizes.sum(), torch.tensor(5000.0))
     assert torch.equal(torch.unique(res.assignment), torch.arange(300))
-    # merged positions are size-weighted means of their candidates
+    # merge="mean": merged positions are size-weighted means of their candidates
     mean = torch.zeros(300, 3).index_add_(0, res.assignment, pos) / res.sizes.unsqueeze(1)
     assert torch.allclose(mean, res.positions, atol=1e-4)
     # dynamic region gets denser nodes than the static one
@@ -109,3 +109,55 @@ def test_mani_does_not_modify_its_inputs():
     copies = [x.clone() for x in (pos, tok, fg)]
     mani_compress(pos, tok, fg, ManiConfig(budget=50))
     assert all(torch.equal(x, c) for x, c in zip((pos, tok, fg), copies))
+
+
+def test_medoid_and_representative_nodes_are_member_candidates():
+    g = torch.Generator().manual_seed(5)
+    pos, tok, fg = torch.rand(3000, 3, generator=g), torch.randn(3000, 8, generator=g), torch.rand(3000, generator=g)
+    time = torch.rand(3000, generator=g)
+    mean = mani_compress(pos, tok, fg, ManiConfig(budget=200, merge="mean"), time=time)
+    for merge in ("medoid", "representative"):
+        res = mani_compress(pos, tok, fg, ManiConfig(budget=200, merge=merge), time=time)
+        # the merge mode moves nodes only: the clustering itself is the same
+        assert torch.equal(res.assignment, mean.assignment) if merge == "medoid" else True
+        d = (res.positions[res.assignment] - pos).norm(dim=1)  # [M] member to its node
+        hit = torch.zeros(200, dtype=torch.bool).index_fill_(0, res.assignment[d < 1e-6], True)
+        assert hit.all(), merge  # every node sits exactly on one of its own candidates
+        member = res.assignment[d < 1e-6]  # ... and carries that candidate's source time
+        assert torch.allclose(res.time[member], time[d < 1e-6])
+    # medoid: the member nearest the cluster centroid
+    med = mani_compress(pos, tok, fg, ManiConfig(budget=200), time=time)
+    dc = (pos - mean.positions[med.assignment]).norm(dim=1)
+    best = torch.full((200,), float("inf")).scatter_reduce(0, med.assignment, dc, "amin")
+    assert torch.allclose((med.positions - mean.positions).norm(dim=1), best, atol=1e-6)
+
+
+def test_moving_part_seen_at_two_times_keeps_nodes_on_the_part():
+    """A thin bar back-projected at two keyframes, moved 3 widths between them, in one voxel:
+    the centroid of a merged pair lies between the two bars (on the part at no time), the
+    medoid on one of them, with that keyframe's time."""
+    g = torch.Generator().manual_seed(6)
+    n = 200
+    y = torch.rand(2 * n, generator=g)
+    x = torch.where(torch.arange(2 * n) < n, 0.0, 0.03) + 0.01 * torch.rand(2 * n, generator=g)  # width 0.01
+    pos = torch.stack([x, y, torch.zeros(2 * n)], 1)
+    time = (torch.arange(2 * n) >= n).float()
+    tok = torch.ones(2 * n, 8) + 0.01 * torch.randn(2 * n, 8, generator=g)  # same part: same token
+    fg = torch.ones(2 * n)
+
+    def on_bar(res):
+        bar0 = (res.positions[:, 0] <= 0.01 + 1e-6) & (res.time == 0)
+        bar1 = (res.positions[:, 0] >= 0.03 - 1e-6) & (res.time == 1)
+        return (bar0 | bar1).float().mean()
+
+    cfg = dict(budget=40, v_init=0.1, dv=0.05)
+    assert on_bar(mani_compress(pos, tok, fg, ManiConfig(merge="mean", **cfg), time=time)) < 0.9
+    assert on_bar(mani_compress(pos, tok, fg, ManiConfig(**cfg), time=time)) == 1.0
+    assert on_bar(mani_compress(pos, tok, fg, ManiConfig(merge="representative", **cfg), time=time)) == 1.0
+
+
+def test_unknown_merge_mode_is_refused():
+    import pytest
+
+    with pytest.raises(ValueError, match="merge"):
+        mani_compress(torch.rand(10, 3), torch.randn(10, 4), torch.zeros(10), ManiConfig(budget=5, merge="centre"))
