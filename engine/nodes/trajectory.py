@@ -1,9 +1,10 @@
 """Spline trajectory initialisation from lifted 2D tracks.
 
-Canonical frame: a node's centre ``c_i`` is its merged candidate position, observed at
-its (size-weighted, snapped to a frame) source time ``t_i``. Tracks near the node *at
-that frame* vote with their displacement since that frame, so ``p_i(t_i) ≈ c_i`` and the
-node transform is ~identity at its own source time. Rotations start at identity.
+Source frame: a node's centre ``c_i`` is its candidate position (MANI: its cluster's
+medoid), observed at that candidate's source time ``t_i`` snapped to a frame. Tracks near
+the node *at that frame* vote with their displacement since that frame, so
+``p_i(t_i) ≈ c_i``. Rotations start at identity. Training then takes canonical centres
+at one shared time (``engine.train.trainer.common_canonical_nodes``).
 """
 
 from __future__ import annotations

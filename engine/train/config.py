@@ -59,6 +59,8 @@ class TrainConfig:
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     bind_k: int = 4                      # nodes per Gaussian (K in the paper)
+    canonical_time: float = 0.5          # canonical node centres: initial positions at this point of the
+                                         # training frames (0..1); -1 = each node's own source frame
     rebind_every: int = 200              # refresh binding every N steps (0 = never)
     sh_degree: int = 1
     gaussians_per_frame: int = 3000      # back-projected at init from each keyframe

@@ -115,6 +115,11 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
     dev, dt = data.images.device, torch.float32
     as_t = lambda a: torch.as_tensor(np.asarray(a), device=dev, dtype=dt)  # noqa: E731
     key_times, pos_keys, rot_keys = as_t(nodes.key_times), as_t(nodes.pos_keys), as_t(nodes.rot_keys)
+    graph = torch.as_tensor(nodes.graph_idx, device=dev) if nodes.graph_idx is not None else None
+    centers, radii = as_t(nodes.centers), as_t(nodes.radii)
+    if cfg.motion != "mlp" and cfg.canonical_time >= 0:
+        centers, radii, graph = common_canonical_nodes(data, key_times, pos_keys, as_t(nodes.pos_tangents),
+                                                       cfg.canonical_time, graph)
     if cfg.motion == "per_frame":
         # one key per training frame, initialised by sampling the initial spline there
         from ..geometry.hermite import hermite_eval, hermite_eval_quat
@@ -123,12 +128,10 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         pos_keys = hermite_eval(key_times, pos_keys, as_t(nodes.pos_tangents), ft)
         rot_keys = hermite_eval_quat(key_times, rot_keys, as_t(nodes.rot_tangents), ft)
         key_times = ft
-    graph = torch.as_tensor(nodes.graph_idx, device=dev) if nodes.graph_idx is not None else None
     p_dyn = as_t(nodes.p_dyn) if nodes.p_dyn is not None else None
-    centers = as_t(nodes.centers)
     # Nodes alone first (one dummy Gaussian) to map observed points to canonical space.
     probe = DynamicScene(centers[:1].clone(), torch.zeros(1, 3, device=dev), torch.ones(1, 3, device=dev),
-                         torch.full((1,), 0.5, device=dev), centers, as_t(nodes.radii), key_times, pos_keys,
+                         torch.full((1,), 0.5, device=dev), centers, radii, key_times, pos_keys,
                          rot_keys, sh_degree=cfg.sh_degree, motion="spline", bind_k=cfg.bind_k,
                          graph_idx=graph, node_p_dyn=p_dyn, extent=data.extent)
     pts, cols, scl, tms = initial_gaussians(data, cfg, gen)
@@ -140,10 +143,43 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         else:
             canon[sel] = to_canonical(_NodeMotion(probe), pts[sel], t, cfg.bind_k)[0]
     model = DynamicScene(canon, cols.clamp(0, 1), scl, torch.full((len(canon),), 0.3, device=dev), centers,
-                         as_t(nodes.radii), key_times, pos_keys, rot_keys, sh_degree=cfg.sh_degree,
+                         radii, key_times, pos_keys, rot_keys, sh_degree=cfg.sh_degree,
                          motion=cfg.motion, bind_k=cfg.bind_k, graph_idx=graph, node_p_dyn=p_dyn,
                          extent=data.extent)
     return model
+
+
+def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys: torch.Tensor,
+                           pos_tangents: torch.Tensor, t_rel: float, graph: torch.Tensor | None):
+    """Canonical node centres at one shared time: each node's initial position there.
+
+    An initialiser places every node where it was seen, at its own source frame; nodes on a
+    moving part seen at different keyframes then sit where the part was at *different*
+    times. Used as canonical centres, that mixes times: a Gaussian's canonical position
+    blends frames its nodes disagree on, and the canonical K-NN binding (and every rebind)
+    can then pick nodes of another part, or static ones, that happen to lie near that
+    blend — on a part moving more than its width between keyframes (a forearm) its
+    Gaussians lag. Taking every centre at one time ``t_c`` (the training frame nearest
+    ``t_rel`` of the way through the training frames) makes canonical space the scene at
+    ``t_c``. With identity rotations (every initialiser) the node transforms at any ``t``
+    are unchanged in meaning (translation ``pos(t) - c``), radii and the ARAP graph are
+    recomputed from the new centres (at ``t_c`` neighbours are true neighbours).
+
+    key_times [K], pos_keys / pos_tangents [N, K, 3] -> centres [N, 3], radii [N],
+    graph [N, k] (``None`` in, ``None`` out).
+    """
+    from ..geometry.hermite import hermite_eval
+    from ..nodes import NodeInitConfig
+    from ..nodes.graph import node_graph, node_radii
+
+    times = torch.sort(data.times[data.train_idx].to(pos_keys.dtype)).values
+    t_c = times[int(round(t_rel * (len(times) - 1)))].reshape(1)
+    centers = hermite_eval(key_times, pos_keys, pos_tangents, t_c)[:, 0]
+    ncfg = NodeInitConfig()
+    radii = node_radii(centers, ncfg.radius_k, ncfg.radius_factor)
+    if graph is not None:
+        graph = node_graph(centers, graph.shape[1])[0]
+    return centers, radii, graph
 
 
 @torch.no_grad()

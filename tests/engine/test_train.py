@@ -118,7 +118,10 @@ def test_node_densification_adds_nodes_where_gaussians_lack_them(tmp_path, scene
     nodes = make_nodes(truth)
     wall_only = B.NodeArrays(**{k: (v[:20] if k not in ("key_times", "graph_idx") else v)
                                 for k, v in nodes.to_dict().items() if k != "graph_idx"})
-    cfg = _cfg(steps=40, densify_from=10, densify_until=35, densify_every=10, node_add_max=8, num_nodes=20)
+    # canonical_time=-1 keeps these hand-made nodes' hand-set radii (a shared canonical time
+    # recomputes radii from the 0.9-spaced wall grid, and at ~1.0 the blob is within reach)
+    cfg = _cfg(steps=40, densify_from=10, densify_until=35, densify_every=10, node_add_max=8, num_nodes=20,
+               canonical_time=-1.0)
     trainer = Trainer(data, wall_only, cfg, tmp_path / "nd")
     before = trainer.model.num_nodes
     trainer.train()
@@ -272,7 +275,9 @@ def test_spawned_nodes_follow_a_moving_parent_only_where_the_prior_moves(tmp_pat
     radii = nodes.radii[:22].copy()
     radii[20:] = 0.03
     few = _subset(nodes, slice(0, 22), radii=radii)
-    trainer = Trainer(data, few, _cfg(node_add_max=16, num_nodes=22, node_spawn_factor=2.0), tmp_path / "blob")
+    # canonical_time=-1: keep the hand-set tiny radii (a shared canonical time recomputes them)
+    trainer = Trainer(data, few, _cfg(node_add_max=16, num_nodes=22, node_spawn_factor=2.0, canonical_time=-1.0),
+                      tmp_path / "blob")
     n0 = trainer.model.num_nodes
     trainer._densify_nodes()
     m = trainer.model
@@ -324,3 +329,4 @@ def test_mlp_baseline_decays_its_learning_rate_like_the_spline_keys(tmp_path, sc
         lr[step] = {g["name"]: g["lr"] for g in trainer.opt.param_groups}
     assert lr[0]["mlp"] == pytest.approx(cfg.lr_mlp)
     assert lr[100]["mlp"] == pytest.approx(cfg.lr_mlp_final)
+
