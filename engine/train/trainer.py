@@ -332,7 +332,7 @@ class Trainer:
         self.initial_eval: dict | None = None
         self.track_canon = None
         # initial keys of every node [N, K, 3] / [N, K, 4] (spline / per-frame motion): the
-        # reference of the static-motion term when loss.static_init > 0
+        # reference of the static-motion term; kept only when loss.static_init > 0
         self.static_ref = None
         # a PhaseTimer (engine/train/phases.py) when a bench profiles the step; None in runs
         self.phases = None
@@ -348,7 +348,7 @@ class Trainer:
             self.opt = make_optimizer(self.model, self.cfg)
             self._reset_densify_stats()
             self._prepare_tracks()
-            if self.model.pos_keys is not None:
+            if self.model.pos_keys is not None and self.cfg.loss.static_init > 0:
                 self.static_ref = (self.model.pos_keys.detach().clone(), self.model.rot_keys.detach().clone())
 
     # ---------------------------------------------------------------- helpers
@@ -517,7 +517,7 @@ class Trainer:
         if m.pos_keys is not None:
             pk, q = m.pos_keys, quat_normalize(m.rot_keys)
             a = self.cfg.loss.static_init
-            if a > 0 and self.static_ref is not None:
+            if self.static_ref is not None:
                 # motion beyond the initial trajectory: a node on a thin moving part that the
                 # prior half-calls static keeps the motion its tracks gave it
                 pk = pk - a * self.static_ref[0]
@@ -752,7 +752,8 @@ class Trainer:
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self.initial_eval = dict(state.get("initial_eval") or {}) or None
         ref = state.get("static_ref")  # absent in checkpoints from before static_init
-        self.static_ref = None if ref is None else tuple(x.to(dev) for x in ref)
+        keep_ref = ref is not None and self.cfg.loss.static_init > 0
+        self.static_ref = tuple(x.to(dev) for x in ref) if keep_ref else None
         tracks = state.get("tracks")
         if tracks is not None:
             self.track_ids, self.track_canon = tracks["ids"].to(dev), tracks["canon"].to(dev)

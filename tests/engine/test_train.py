@@ -329,4 +329,3 @@ def test_mlp_baseline_decays_its_learning_rate_like_the_spline_keys(tmp_path, sc
         lr[step] = {g["name"]: g["lr"] for g in trainer.opt.param_groups}
     assert lr[0]["mlp"] == pytest.approx(cfg.lr_mlp)
     assert lr[100]["mlp"] == pytest.approx(cfg.lr_mlp_final)
-
