@@ -125,6 +125,8 @@ class TrainConfig:
                     "max_gaussians", "batch_frames"):
             if getattr(self, key) < 1:
                 bad(key, "must be >= 1")
+        if not (0 <= self.canonical_time <= 1 or self.canonical_time == -1):
+            bad("canonical_time", "must be in [0, 1] (fraction of the training frames) or -1 (source frames)")
         if self.bind_k > self.num_nodes:
             bad("bind_k", "cannot exceed num_nodes")
         for f in dataclasses.fields(self.loss):

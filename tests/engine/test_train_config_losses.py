@@ -26,6 +26,8 @@ def test_presets_are_valid_and_round_trip():
     ({"loss": {"rgb": "x"}}, "rgb"),
     ({"loss": {"photo": 1}}, "photo"),
     ({"sh_degree": 7}, "sh_degree"),
+    ({"canonical_time": 1.5}, "canonical_time"),
+    ({"canonical_time": -0.5}, "canonical_time"),
 ])
 def test_bad_config_is_refused_with_the_key(data, msg):
     with pytest.raises(InputError, match=msg):
