@@ -171,7 +171,8 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     vis[:, order] = pr.tracks.visible
     full = dataclasses.replace(pr.tracks, xy=xy, visible=vis) if dataclasses.is_dataclass(pr.tracks) else pr.tracks
     priors = _FramePriors(tokens=pr.tokens, tracks=full, depth=depth, dynamic=dynamic, train_order=order,
-                          recomputed=list(getattr(pr, "recomputed", [])))
+                          recomputed=list(getattr(pr, "recomputed", [])),
+                          depth_source=depth_source(prior_config or PriorConfig()))
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
                         frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
                         extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""),
@@ -204,6 +205,34 @@ class _FramePriors:
     dynamic: np.ndarray     # [F, H, W]
     train_order: np.ndarray  # frame indices of the training frames, in time order
     recomputed: list
+    depth_source: str = "weight-free"  # see depth_source()
+
+
+def depth_source(prior_config) -> str:
+    """Where the depth prior comes from: ``"file"`` (precomputed ``depth_path``), ``"model"``
+    (an ONNX depth network) or ``"weight-free"`` (triangulated track anchors densified
+    edge-aware, :func:`engine.priors.estimate_depth`). Only the weight-free depth takes
+    moving objects' depth from their static surroundings (its anchors exclude them)."""
+    if getattr(prior_config, "depth_path", None):
+        return "file"
+    return "model" if getattr(prior_config, "depth_backend", "sparse") == "onnx" else "weight-free"
+
+
+def resolve_motion_init(prep: "PreparedClip", cfg: TrainConfig) -> str:
+    """``cfg.motion_init`` with ``"auto"`` decided: ``"tracks"`` (node splines fitted to 2D
+    tracks lifted with the depth prior) unless the depth is the weight-free one, then
+    ``"rest"`` (every node starts still and the track loss teaches the motion).
+
+    Why: the weight-free depth of a moving object is filled in from the static surfaces
+    around it, so a lifted track's depth -- and with it the node's starting 3D motion --
+    is made up. On the generated bench scenes (weight-free priors, see
+    docs/benchmarks.md) starting at rest was better for every initialiser, most on a
+    waving flag next to a wall; with depth that sees the moving objects (ground truth)
+    the track-fitted start is better.
+    """
+    if cfg.motion_init != "auto":
+        return cfg.motion_init
+    return "rest" if getattr(prep.priors, "depth_source", "weight-free") == "weight-free" else "tracks"
 
 
 def initial_nodes(prep: PreparedClip, cfg: TrainConfig) -> B.NodeArrays:
@@ -214,8 +243,9 @@ def initial_nodes(prep: PreparedClip, cfg: TrainConfig) -> B.NodeArrays:
     order = prep.priors.train_order
     n_train = len(order)
     num_keys = cfg.num_keys or max(4, min(24, n_train // 4))
+    trajectory = {"tracks": "spline", "rest": "static"}[resolve_motion_init(prep, cfg)]
     init_cfg = NodeInitConfig(method=cfg.init, mani=ManiConfig(budget=cfg.num_nodes), num_keys=num_keys,
-                              num_keyframes=min(12, n_train), seed=cfg.seed)
+                              num_keyframes=min(12, n_train), seed=cfg.seed, trajectory=trajectory)
     tr = prep.priors.tracks
     nodes = initialise_nodes(prep.priors.depth[order], prep.K[order], prep.w2c[order], prep.times[order],
                              prep.priors.tokens.tokens, prep.priors.tokens.patch_centers,
@@ -247,6 +277,10 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
         B.clear_run_outputs(out_dir)
     clip = open_clip(clip_path, reporter, **(clip_options or {}))
     prep = prepare(clip, cfg, prior_config, cache_dir=cache_dir or Path(out_dir) / "cache", reporter=reporter)
+    # the bundle's config records what ran: "auto" decided by where the depth came from
+    cfg = dataclasses.replace(cfg, motion_init=resolve_motion_init(prep, cfg))
+    reporter.log(f"node motion starts from {'lifted tracks' if cfg.motion_init == 'tracks' else 'rest'} "
+                 f"(depth prior: {prep.priors.depth_source})")
     nodes_path = Path(out_dir) / B.NODES_FILE
     if resume and nodes_path.exists():
         nodes = B.read_nodes(nodes_path)

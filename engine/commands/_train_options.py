@@ -15,6 +15,9 @@ def add_clip_options(parser):
     parser.add_argument("--nodes", type=int, dest="num_nodes", help="node budget (preset default)")
     parser.add_argument("--init", choices=("mani", "fps", "voxel", "tracklet"), help="node initialiser (default mani)")
     parser.add_argument("--motion", choices=("spline", "mlp", "per_frame"), help="node motion model (default spline)")
+    parser.add_argument("--motion-init", choices=("auto", "tracks", "rest"),
+                        help="starting node trajectories: splines fitted to lifted 2D tracks, or at rest (default "
+                             "auto: tracks when the depth comes from --depth-model/--depth-path, else rest)")
     parser.add_argument("--max-frames", type=int, help="sub-sample the clip to at most this many frames")
     parser.add_argument("--seed", type=int)
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"))
@@ -50,7 +53,7 @@ def config_from_args(args):
             raise InputError(f"cannot read config JSON ({exc})", args.config, "pass a JSON object of TrainConfig keys")
         if not isinstance(overrides, dict):
             raise InputError("config must be a JSON object", args.config, "e.g. {\"steps\": 2000}")
-    for key in ("width", "steps", "num_nodes", "init", "motion", "seed", "device", "backend"):
+    for key in ("width", "steps", "num_nodes", "init", "motion", "motion_init", "seed", "device", "backend"):
         value = getattr(args, key, None)
         if value is not None:
             overrides[key] = value

@@ -16,10 +16,11 @@ def add_arguments(parser):
 
 
 def run(args, reporter):
+    import dataclasses
     from pathlib import Path
 
     from .. import bundle as B
-    from ..pipeline import bundle_scene, initial_nodes, open_clip, prepare
+    from ..pipeline import bundle_scene, initial_nodes, open_clip, prepare, resolve_motion_init
 
     cfg = config_from_args(args)
     out = B.check_output_dir(args.out, overwrite=args.overwrite)
@@ -28,6 +29,7 @@ def run(args, reporter):
     clip = open_clip(args.clip, reporter, **clip_options(args))
     prep = prepare(clip, cfg, prior_config_from_args(args), cache_dir=args.cache or Path(out) / "cache",
                    reporter=reporter)
+    cfg = dataclasses.replace(cfg, motion_init=resolve_motion_init(prep, cfg))  # record what ran
     nodes = initial_nodes(prep, cfg)
     B.save_bundle(out, bundle_scene(prep, cfg, stage="init"), nodes)
     p_dyn = nodes.p_dyn if nodes.p_dyn is not None else None

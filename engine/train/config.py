@@ -21,6 +21,7 @@ from ..errors import InputError
 
 INIT_METHODS = ("mani", "fps", "voxel", "tracklet")
 MOTION_MODELS = ("spline", "mlp", "per_frame")
+MOTION_INITS = ("auto", "tracks", "rest")
 
 
 @dataclass
@@ -56,6 +57,10 @@ class TrainConfig:
     # representation
     init: str = "mani"                   # node initialiser: mani | fps | voxel | tracklet
     motion: str = "spline"               # node motion model: spline | mlp | per_frame
+    motion_init: str = "auto"            # starting node trajectories: tracks (2D tracks lifted with the depth
+                                         # prior) | rest (every node still; the track loss teaches the motion) |
+                                         # auto (tracks when the depth prior comes from a model or a file, rest
+                                         # with the weight-free depth, which cannot see moving objects)
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     bind_k: int = 4                      # nodes per Gaussian (K in the paper)
@@ -115,6 +120,8 @@ class TrainConfig:
             bad("init", f"must be one of {INIT_METHODS}")
         if self.motion not in MOTION_MODELS:
             bad("motion", f"must be one of {MOTION_MODELS}")
+        if self.motion_init not in MOTION_INITS:
+            bad("motion_init", f"must be one of {MOTION_INITS}")
         if self.device not in ("auto", "cpu", "cuda"):
             bad("device", "must be auto, cpu or cuda")
         if self.backend not in ("auto", "reference", "cpu", "gsplat"):
