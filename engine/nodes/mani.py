@@ -49,7 +49,8 @@ class ManiConfig:
     beta: float = 4.0           #: p_dyn weight of the mean matched similarity
     bias: float = 0.0           #: added inside the sigmoid (shifts p_dyn)
     r_min: float = 0.2          #: merge fraction of a fully dynamic voxel (0.3: 2.9× FPS density on the small synth scene)
-    r_max: float = 1.0          #: merge fraction of a fully static voxel
+    r_max: float = 0.4          #: merge fraction of a fully static voxel (1.0 starved the background: its
+                                #: nodes' motion over time is worth ~0.5 dB there; see docs/benchmarks.md)
     max_iters: int = 500        #: safety stop
     seed: int = 0               #: A/B split shuffle seed
     merge: str = "medoid"       #: node position: "medoid" | "representative" | "mean" (module doc)
