@@ -213,9 +213,9 @@ def depth_source(prior_config) -> str:
     (an ONNX depth network) or ``"weight-free"`` (triangulated track anchors densified
     edge-aware, :func:`engine.priors.estimate_depth`). Only the weight-free depth takes
     moving objects' depth from their static surroundings (its anchors exclude them)."""
-    if getattr(prior_config, "depth_path", None):
+    if prior_config.depth_path:
         return "file"
-    return "model" if getattr(prior_config, "depth_backend", "sparse") == "onnx" else "weight-free"
+    return "model" if prior_config.depth_backend == "onnx" else "weight-free"
 
 
 def resolve_motion_init(prep: "PreparedClip", cfg: TrainConfig) -> str:
@@ -232,7 +232,7 @@ def resolve_motion_init(prep: "PreparedClip", cfg: TrainConfig) -> str:
     """
     if cfg.motion_init != "auto":
         return cfg.motion_init
-    return "rest" if getattr(prep.priors, "depth_source", "weight-free") == "weight-free" else "tracks"
+    return "rest" if prep.priors.depth_source == "weight-free" else "tracks"
 
 
 def initial_nodes(prep: PreparedClip, cfg: TrainConfig) -> B.NodeArrays:
