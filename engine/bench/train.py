@@ -13,8 +13,9 @@ One row per repeat; each repeat runs in a fresh subprocess (its own peak RSS, th
 thread settings as ``python -m engine``: ``OMP_WAIT_POLICY=PASSIVE``, torch's default
 thread count unless ``--threads``). The step is the real :class:`engine.train.trainer.Trainer`
 step at the ``preview`` preset with deformation on: spline motion (fused DQB), all default
-losses (L1 + D-SSIM, mask every 4th step, depth, track, ARAP, velocity/acceleration) and
-the per-step densification statistics. ``--device cuda`` runs the same step on a GPU
+losses (L1 + D-SSIM, mask every 4th step as an extra channel of the colour pass, depth,
+track, ARAP, velocity/acceleration) and the per-step densification statistics.
+``--device cuda`` runs the same step on a GPU
 (``backend='auto'``: gsplat when it imports); the timed window then ends with a
 ``torch.cuda.synchronize()``, but the per-phase columns time kernel *launches* (CUDA runs
 asynchronously), so on CUDA only ``its_per_s``/``ms_step`` are wall-clock truths. The trainer starts *after* the static warm-up and
@@ -30,8 +31,8 @@ rebuild) after the timed steps; ``its_per_s_amortised`` spreads it over
 Columns: ``its_per_s`` (timed steps / wall s), ``ms_step``, ``cpu_ms_step`` (process CPU
 time per step, all threads; on a shared machine it is steadier than wall time), the
 per-phase wall ms per step ``deform`` (node splines + fused DQB forward), ``sh`` (SH ->
-colour), ``raster_fwd`` (project + rasterise), ``losses`` (every loss term incl. the mask
-render and the track/ARAP deformations, metrics), ``backward`` (all of autograd) split
+colour), ``raster_fwd`` (project + rasterise, with the mask term's extra channel every
+4th step), ``losses`` (every loss term incl. the track/ARAP deformations, metrics), ``backward`` (all of autograd) split
 into ``bwd_raster`` (the CPU rasteriser's project + rasterise backward), ``bwd_deform``
 (the fused DQB backward) and ``bwd_torch`` (the rest: SH, losses, splines, glue),
 ``optimizer`` (Adam step), ``densify_stats`` (2D-gradient accumulation) and ``other``

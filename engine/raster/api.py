@@ -36,6 +36,9 @@ class RenderOutput:
         ``radii > 0``.
     backend : str
         The backend that ran.
+    extra : Tensor [H, W, 1] or None
+        ``sum_i w_i e_i`` of the ``extra`` per-Gaussian scalar given to :func:`render`
+        (no background), else None.
     """
 
     rgb: torch.Tensor
@@ -45,6 +48,7 @@ class RenderOutput:
     means2d: torch.Tensor
     visible: torch.Tensor
     backend: str
+    extra: Optional[torch.Tensor] = None
 
     def grad2d(self) -> Optional[torch.Tensor]:
         """Gradient of the loss w.r.t. the 2D means, ``[N, 2]`` (None before backward)."""
@@ -85,7 +89,7 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
            colors: Optional[torch.Tensor] = None, sh: Optional[torch.Tensor] = None,
            sh_degree: Optional[int] = None, *, w2c: torch.Tensor, K: torch.Tensor, width: int, height: int,
            near: float = 0.01, far: float = 1e4, background: Optional[torch.Tensor] = None,
-           backend: str = "auto") -> RenderOutput:
+           extra: Optional[torch.Tensor] = None, backend: str = "auto") -> RenderOutput:
     """Render 3D Gaussians from one pinhole camera (differentiable).
 
     Parameters
@@ -114,6 +118,11 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
         Gaussians whose mean depth is outside ``(near, far)`` are culled.
     background : Tensor [3], optional
         Colour behind everything; black when None. Differentiable.
+    extra : Tensor [N], optional
+        A per-Gaussian scalar (e.g. a dynamic score) composited in the same pass as the
+        colour, like a fourth colour channel with background 0: ``RenderOutput.extra``.
+        It is not differentiated itself (treated as a constant); the gradient of its image
+        reaches the geometry and opacities like the colour's does.
     backend : str
         ``'auto'`` (default), ``'reference'``, ``'cpu'`` or ``'gsplat'``.
 
@@ -133,7 +142,8 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
     if name == "gsplat":
         from .gsplat_backend import render_gsplat
 
-        return render_gsplat(means, quats, scales, opacities, colors, w2c, K, width, height, near, far, background)
+        return render_gsplat(means, quats, scales, opacities, colors, w2c, K, width, height, near, far, background,
+                             extra)
     if name == "cpu":
         from . import cpu as mod
     else:
@@ -143,14 +153,19 @@ def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opaci
     if means2d.requires_grad:
         means2d.retain_grad()
     visible = radii > 0
+    if extra is not None and extra.shape != (means.shape[0],):
+        raise ValueError(f"extra must be one value per Gaussian, shape ({means.shape[0]},); got {tuple(extra.shape)}")
+    ex = None
     if name == "cpu":
-        rgb, alpha, depth = mod.rasterize(means2d, conics, depths, colors, opacities, radii, extents,
-                                          width, height, background)
+        rgb, alpha, depth, ex = mod.rasterize(means2d, conics, depths, colors, opacities, radii, extents,
+                                              width, height, background, extra)
         dt = means.dtype
         if rgb.dtype != dt:
             rgb, alpha, depth = rgb.to(dt), alpha.to(dt), depth.to(dt)
+            ex = None if ex is None else ex.to(dt)
     else:
-        rgb, alpha, depth, _ = mod.rasterize(means2d, conics, depths, colors, opacities, visible, width, height,
-                                             background)
+        res = mod.rasterize(means2d, conics, depths, colors, opacities, visible, width, height, background, extra)
+        rgb, alpha, depth = res[:3]
+        ex = res[4] if extra is not None else None
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, radii=radii, means2d=means2d, visible=visible,
-                        backend=name)
+                        backend=name, extra=ex)

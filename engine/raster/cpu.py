@@ -93,10 +93,18 @@ class ProjectCPU(torch.autograd.Function):
 
 
 class RasterizeCPU(torch.autograd.Function):
-    """(means2d, conics, depths, colors, opacities) -> (rgb [H,W,3], alpha [H,W,1], depth [H,W,1])."""
+    """(means2d, conics, depths, colors, opacities[, extra]) -> (rgb [H,W,3], alpha [H,W,1],
+    depth [H,W,1], extra image [H,W,E]) with E = 1 when ``extra [N]`` is given, else 0.
+
+    The extra channel is composited like a colour without background and is not
+    differentiated itself; its image's gradient reaches the geometry and opacities. It
+    runs in the same pass as the colour (the ``*_extra`` kernel variants), so a
+    per-Gaussian scalar such as a dynamic score costs one more channel, not a second render.
+    """
 
     @staticmethod
-    def forward(ctx, means2d, conics, depths, colors, opacities, radii, extents, width, height, background):
+    def forward(ctx, means2d, conics, depths, colors, opacities, radii, extents, width, height, background,
+                extra=None):
         W, H = int(width), int(height)
         tx, ty = (W + TILE - 1) // TILE, (H + TILE - 1) // TILE
         n = means2d.shape[0]
@@ -107,24 +115,31 @@ class RasterizeCPU(torch.autograd.Function):
         dep = np.empty((H, W), np.float32)
         T = np.empty((H, W), np.float32)
         last = np.empty((H, W), np.int32)
+        xe = extra is not None
+        ex_img = np.empty((H, W) if xe else (0, 0), np.float32)
         with kernel_threads():
             offsets, gid, data, idata, gstart = K_.bin_tiles(dz, m2, cn, col, op, _np(extents), radii.numpy(),
-                                                             W, H, tx, ty)
-            K_.tile_loop(K_.raster_forward, offsets, data, idata, W, H, tx, bg, rgb, dep, T, last)
-        ctx.state = (offsets, data, idata, gstart, bg, T, last, W, H, tx, n)
+                                                             W, H, tx, ty, _np(extra) if xe else None)
+            K_.tile_loop(K_.raster_forward_extra if xe else K_.raster_forward, offsets, data, idata, W, H, tx, bg,
+                         rgb, dep, T, last, ex_img)
+        ctx.state = (offsets, data, idata, gstart, bg, T, last, W, H, tx, n, xe)
         ctx.dtypes = (means2d.dtype, conics.dtype, depths.dtype, colors.dtype, opacities.dtype)
         ctx.has_bg = background is not None
         ctx.bg_dtype = None if background is None else background.dtype
         alpha = torch.from_numpy(1.0 - T)[..., None]
         ctx.n_instances = int(gid.shape[0])
-        return torch.from_numpy(rgb), alpha, torch.from_numpy(dep)[..., None]
+        return torch.from_numpy(rgb), alpha, torch.from_numpy(dep)[..., None], torch.from_numpy(ex_img)[..., None]
 
     @staticmethod
-    def backward(ctx, g_rgb, g_alpha, g_depth):
-        offsets, data, idata, gstart, bg, T, last, W, H, tx, n = ctx.state
+    def backward(ctx, g_rgb, g_alpha, g_depth, g_extra):
+        offsets, data, idata, gstart, bg, T, last, W, H, tx, n, xe = ctx.state
         gr = np.zeros((H, W, 3), np.float32) if g_rgb is None else _np(g_rgb)
         ga = np.zeros((H, W), np.float32) if g_alpha is None else _np(g_alpha[..., 0])
         gd = np.zeros((H, W), np.float32) if g_depth is None else _np(g_depth[..., 0])
+        if xe:
+            ge = np.zeros((H, W), np.float32) if g_extra is None else _np(g_extra[..., 0])
+        else:
+            ge = np.empty((0, 0), np.float32)
         # per-Gaussian gradients, each its own contiguous array (no strided views downstream)
         v_m2 = np.empty((n, 2), np.float32)
         v_cn = np.empty((n, 3), np.float32)
@@ -133,14 +148,15 @@ class RasterizeCPU(torch.autograd.Function):
         v_dz = np.empty(n, np.float32)
         with kernel_threads():
             grads = K_.pooled("grads", data.shape[0] * 10, np.float32).reshape(-1, 10)
-            inst = K_.tile_loop(K_.raster_backward, offsets, data, idata, W, H, tx, bg, T, last, gr, ga, gd, grads)
+            inst = K_.tile_loop(K_.raster_backward_extra if xe else K_.raster_backward, offsets, data, idata, W, H,
+                                tx, bg, T, last, gr, ga, gd, ge, grads)
             K_.dynamic(K_.sum_instances, K_.GAUSS_CHUNK, gstart, inst, v_m2, v_cn, v_op, v_col, v_dz)
         d = ctx.dtypes
         v_bg = None
         if ctx.has_bg and ctx.needs_input_grad[9]:
             v_bg = (torch.from_numpy(gr) * torch.from_numpy(T)[..., None]).sum((0, 1)).to(ctx.bg_dtype)
         return (_as(v_m2, d[0]), _as(v_cn, d[1]), _as(v_dz, d[2]), _as(v_col, d[3]), _as(v_op, d[4]),
-                None, None, None, None, v_bg)
+                None, None, None, None, v_bg, None)
 
 
 def project(means, quats, scales, opacities, w2c, K, width, height, near=0.01, far=1e4):
@@ -148,6 +164,10 @@ def project(means, quats, scales, opacities, w2c, K, width, height, near=0.01, f
     return ProjectCPU.apply(means, quats, scales, opacities, w2c, K, width, height, near, far)
 
 
-def rasterize(means2d, conics, depths, colors, opacities, radii, extents, width, height, background=None):
-    """Tile compositing; returns ``rgb [H,W,3], alpha [H,W,1], depth [H,W,1]``."""
-    return RasterizeCPU.apply(means2d, conics, depths, colors, opacities, radii, extents, width, height, background)
+def rasterize(means2d, conics, depths, colors, opacities, radii, extents, width, height, background=None,
+              extra=None):
+    """Tile compositing; returns ``rgb [H,W,3], alpha [H,W,1], depth [H,W,1]`` and, with
+    ``extra [N]``, its composited image ``[H,W,1]`` (else None)."""
+    rgb, alpha, depth, ex = RasterizeCPU.apply(means2d, conics, depths, colors, opacities, radii, extents, width,
+                                               height, background, extra)
+    return rgb, alpha, depth, (ex if extra is not None else None)

@@ -295,24 +295,25 @@ def project_forward(means, quats, scales, opac, view, intr, width, height, near,
 # an int32 view of the same memory (``irec`` / ``idata``) for the integer fields. Copying a
 # Gaussian into tile order then moves one cache line instead of gathering from six arrays.
 NREC = 16
-R_MX, R_MY, R_A, R_B, R_C, R_OP, R_R, R_G, R_BL, R_Z, R_THR = range(11)  # float fields
+R_MX, R_MY, R_A, R_B, R_C, R_OP, R_R, R_G, R_BL, R_Z, R_E = range(11)  # float fields; R_E: the extra channel
 R_X0, R_X1, R_Y0, R_Y1 = 11, 12, 13, 14  # int: pixel box, end exclusive, clipped
 R_SLOT = 15  # int: rec -> first slot of the Gaussian's instances in Gaussian-major order
 #              data -> that instance's slot (row of the per-instance gradient array)
 
 
 @njit(parallel=True, **_JIT)
-def _pack_count(means2d, conics, depths, colors, opac, extents, radii, width, height, tiles_x,
+def _pack_count(means2d, conics, depths, colors, extra, opac, extents, radii, width, height, tiles_x,
                 rec, irec, ntile, counts):
     """Pass 1 of the binning, prange over chunks of Gaussians.
 
-    Inputs float32: means2d [N,2], conics [N,3], depths [N], colors [N,3], opac [N],
-    extents [N,2]; radii [N] int32. Writes the records rec/irec [N, NREC] of Gaussians with
+    Inputs float32: means2d [N,2], conics [N,3], depths [N], colors [N,3], extra [N] or [0]
+    (no extra channel: R_E = 0), opac [N], extents [N,2]; radii [N] int32. Writes the records rec/irec [N, NREC] of Gaussians with
     a non-empty pixel box (others are left unset and never read), ntile [N] int64 (tiles
     the box touches, 0 = none) and counts [P, T] int32 (instances of chunk P in tile T)."""
     n = means2d.shape[0]
     nch = counts.shape[0]
     size = (n + nch - 1) // nch
+    has_extra = extra.shape[0] == n
     for ch in prange(nch):
         for t in range(counts.shape[1]):
             counts[ch, t] = 0
@@ -339,8 +340,7 @@ def _pack_count(means2d, conics, depths, colors, opac, extents, radii, width, he
             rec[g, R_G] = colors[g, 1]
             rec[g, R_BL] = colors[g, 2]
             rec[g, R_Z] = depths[g]
-            # sigma threshold for alpha >= 1/255: ln(255 o)
-            rec[g, R_THR] = math.log(max(F255 * opac[g], F1))
+            rec[g, R_E] = extra[g] if has_extra else F0
             irec[g, R_X0] = x0
             irec[g, R_X1] = x1
             irec[g, R_Y0] = y0
@@ -469,11 +469,14 @@ def _sort_gather(offsets, inst_gid, tiles_x, depths, rec, irec, data, idata):
             idata[k, R_SLOT] = irec[g, R_SLOT] + (tyi - y0 // TILE) * ntx + (txi - x0 // TILE)
 
 
-def bin_tiles(depths, means2d, conics, colors, opac, extents, radii, width, height, tiles_x, tiles_y):
+_NO_EXTRA = np.zeros(0, np.float32)
+
+
+def bin_tiles(depths, means2d, conics, colors, opac, extents, radii, width, height, tiles_x, tiles_y, extra=None):
     """Per-tile instance lists in front-to-back order, with the per-instance records.
 
     Inputs float32: depths [N], means2d [N,2], conics [N,3], colors [N,3], opac [N],
-    extents [N,2]; radii [N] int32. Returns ``offsets [T+1]`` int64 (tile t's instances
+    extents [N,2]; radii [N] int32; optional extra [N] (the extra channel, field R_E). Returns ``offsets [T+1]`` int64 (tile t's instances
     are ``offsets[t]:offsets[t+1]``), ``inst_gid [I]`` int32 Gaussian ids, ``data [I, NREC]``
     float32 and ``idata``, its int32 view (fields R_*), and ``gstart [N+1]`` int64
     (Gaussian g's instances own gradient rows ``gstart[g]:gstart[g+1]``).
@@ -488,7 +491,8 @@ def bin_tiles(depths, means2d, conics, colors, opac, extents, radii, width, heig
     irec = rec.view(np.int32)
     ntile = pooled("ntile", n, np.int64)
     counts = np.empty((nch, tiles_x * tiles_y), np.int32)
-    dynamic(_pack_count, 1, means2d, conics, depths, colors, opac, extents, radii, width, height, tiles_x, rec,
+    ex = _NO_EXTRA if extra is None else extra
+    dynamic(_pack_count, 1, means2d, conics, depths, colors, ex, opac, extents, radii, width, height, tiles_x, rec,
             irec, ntile, counts)
     offsets, cursor, gstart = _prefix(counts, ntile)
     m = int(offsets[-1])
@@ -498,6 +502,12 @@ def bin_tiles(depths, means2d, conics, colors, opac, extents, radii, width, heig
     idata = data.view(np.int32)
     tile_loop(_sort_gather, offsets, inst_gid, tiles_x, depths, rec, irec, data, idata)
     return offsets, inst_gid, data, idata, gstart
+
+
+@njit(inline="always", **_JIT)
+def _sigma_threshold(op):
+    """``ln(255 o)`` (at least 0): where ``sigma`` exceeds it, ``alpha < 1/255``."""
+    return math.log(max(F255 * op, F1))
 
 
 @njit(inline="always", **_JIT)
@@ -568,13 +578,17 @@ def _exp_neg(s):
 _SPM = np.uint64(6 * NPAD)
 _SP = np.uint64(6 * NPAD + TILE)
 FWD_SLEN = 6 * NPAD + TILE + NPAD
+# the extra channel's accumulator (variant with an extra channel only)
+_E = np.uint64(FWD_SLEN)
+FWD_SLEN_X = FWD_SLEN + NPAD
 
 
 @njit(inline="always", **_JIT)
-def _composite_lane(S, p, lj, dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_, kk):
+def _composite_lane(S, p, lj, dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_, e_, kk, xe):
     """One lane of :func:`raster_forward`: composite the instance into pixel ``p`` of the
     tile state ``S`` (lane offset ``lj`` from the chunk's first pixel, ``n_in`` pixels of
     the chunk inside the span). Returns 1 when the pixel stops here (T < T_MIN), else 0.
+    ``xe`` (a compile-time constant of the kernel variant) adds the extra channel ``e_``.
     Branch-free selects, so the 8-lane loops around it still vectorise."""
     dx = dx0 + lj
     sig = HALF * a * dx * dx + cyy + bdy * dx
@@ -589,100 +603,116 @@ def _composite_lane(S, p, lj, dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_, kk):
     S[_G + p] += w * g_
     S[_B + p] += w * b_
     S[_D + p] += w * z_
+    if xe:
+        S[_E + p] += w * e_
     S[_T + p] = tt if take else (-tp if stop else tp)
     S[_LAST + p] = kk if take else S[_LAST + p]
     return F1 if stop else F0
 
 
-@njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
-def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, out_depth, out_T, out_last):
-    """Front-to-back compositing, one tile per task.
+def _raster_forward_kernel(xe):
+    """:func:`raster_forward` without (``xe`` False) or with the extra channel, compiled as
+    two kernels: ``xe`` is a closure constant, so the plain variant carries no extra work."""
 
-    ``data``/``idata`` [I, NREC]: instance records from :func:`bin_tiles`.
-    Outputs (preallocated): out_rgb [H,W,3] (background included), out_depth [H,W]
-    (sum w z), out_T [H,W] final transmittance, out_last [H,W] int32 = number of list
-    entries of the pixel's tile up to and including its last composited Gaussian."""
-    ntiles = offsets.shape[0] - 1
-    for tile in prange(ntiles):
-        tyi = tile // tiles_x
-        txi = tile - tyi * tiles_x
-        ox = txi * TILE
-        oy = tyi * TILE
-        # A finished pixel keeps its transmittance negated (-T > 0 can never composite
-        # again), so no separate "done" field is loaded and stored per lane.
-        S = np.zeros(FWD_SLEN, np.float32)
-        S[:NPAD] = F1
-        tw = min(TILE, width - ox)
-        th = min(TILE, height - oy)
-        alive = np.float32(tw * th)
-        start = offsets[tile]
-        for k in range(start, offsets[tile + 1]):
-            mx, my = data[k, R_MX], data[k, R_MY]
-            a, b, c = data[k, R_A], data[k, R_B], data[k, R_C]
-            op = data[k, R_OP]
-            r_, g_, b_, z_ = data[k, R_R], data[k, R_G], data[k, R_BL], data[k, R_Z]
-            thr = data[k, R_THR]
-            y0 = max(idata[k, R_Y0], oy)
-            y1 = min(idata[k, R_Y1], oy + th)
-            bx0 = max(idata[k, R_X0], ox)
-            bx1 = min(idata[k, R_X1], ox + tw)
-            narrow = bx1 - bx0 <= 8
-            kk = np.float32(k - start + 1)
-            stops = F0
-            if narrow:
-                # One 8-lane chunk per row at column bx0; the per-lane stop counts run down
-                # the rows (field _SP, the row above at -TILE, as in raster_backward) and are
-                # summed horizontally once per instance instead of once per row.
-                p0 = np.uint64((y0 - oy) * TILE - ox + bx0)
-                for j in range(U0, U8):
-                    S[_SPM + p0 + j] = F0
-                n_in = np.float32(bx1 - bx0)
-                dx0 = np.float32(bx0) + HALF - mx
-                for py in range(y0, y1):
-                    dy = np.float32(py) + HALF - my
-                    cyy = HALF * c * dy * dy
-                    bdy = b * dy
-                    base = np.uint64((py - oy) * TILE - ox + bx0)
+    @njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
+    def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, out_depth, out_T, out_last,
+                       out_extra):
+        """Front-to-back compositing, one tile per task.
+
+        ``data``/``idata`` [I, NREC]: instance records from :func:`bin_tiles`.
+        Outputs (preallocated): out_rgb [H,W,3] (background included), out_depth [H,W]
+        (sum w z), out_T [H,W] final transmittance, out_last [H,W] int32 = number of list
+        entries of the pixel's tile up to and including its last composited Gaussian, and with
+        ``xe`` out_extra [H,W] (sum w e, field R_E; no background)."""
+        ntiles = offsets.shape[0] - 1
+        for tile in prange(ntiles):
+            tyi = tile // tiles_x
+            txi = tile - tyi * tiles_x
+            ox = txi * TILE
+            oy = tyi * TILE
+            # A finished pixel keeps its transmittance negated (-T > 0 can never composite
+            # again), so no separate "done" field is loaded and stored per lane.
+            S = np.zeros(FWD_SLEN_X if xe else FWD_SLEN, np.float32)
+            S[:NPAD] = F1
+            tw = min(TILE, width - ox)
+            th = min(TILE, height - oy)
+            alive = np.float32(tw * th)
+            start = offsets[tile]
+            for k in range(start, offsets[tile + 1]):
+                mx, my = data[k, R_MX], data[k, R_MY]
+                a, b, c = data[k, R_A], data[k, R_B], data[k, R_C]
+                op = data[k, R_OP]
+                r_, g_, b_, z_, e_ = data[k, R_R], data[k, R_G], data[k, R_BL], data[k, R_Z], data[k, R_E]
+                y0 = max(idata[k, R_Y0], oy)
+                y1 = min(idata[k, R_Y1], oy + th)
+                bx0 = max(idata[k, R_X0], ox)
+                bx1 = min(idata[k, R_X1], ox + tw)
+                narrow = bx1 - bx0 <= 8
+                kk = np.float32(k - start + 1)
+                stops = F0
+                if narrow:
+                    # One 8-lane chunk per row at column bx0; the per-lane stop counts run down
+                    # the rows (field _SP, the row above at -TILE, as in raster_backward) and are
+                    # summed horizontally once per instance instead of once per row.
+                    p0 = np.uint64((y0 - oy) * TILE - ox + bx0)
                     for j in range(U0, U8):
-                        p = base + j
-                        S[_SP + p] = _composite_lane(S, p, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_,
-                                                     kk) + S[_SPM + p]
-                pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)
-                for j in range(U0, U8):
-                    stops += S[_SP + pl + j]
-            else:
-                for py in range(y0, y1):
-                    dy = np.float32(py) + HALF - my
-                    x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
-                    cyy = HALF * c * dy * dy
-                    bdy = b * dy
-                    row = (py - oy) * TILE - ox
-                    for c0 in range(x0, x1, 8):
-                        base = np.uint64(row + c0)
-                        n_in = np.float32(x1 - c0)
-                        dx0 = np.float32(c0) + HALF - mx
+                        S[_SPM + p0 + j] = F0
+                    n_in = np.float32(bx1 - bx0)
+                    dx0 = np.float32(bx0) + HALF - mx
+                    for py in range(y0, y1):
+                        dy = np.float32(py) + HALF - my
+                        cyy = HALF * c * dy * dy
+                        bdy = b * dy
+                        base = np.uint64((py - oy) * TILE - ox + bx0)
                         for j in range(U0, U8):
-                            stops += _composite_lane(S, base + j, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_,
-                                                     b_, z_, kk)
-            alive -= stops
-            if alive <= F0:
-                break
-        for yy in range(th):
-            for xx in range(tw):
-                p = yy * TILE + xx
-                Y = oy + yy
-                X = ox + xx
-                tp = abs(S[p])
-                out_rgb[Y, X, 0] = S[_R + p] + tp * bg[0]
-                out_rgb[Y, X, 1] = S[_G + p] + tp * bg[1]
-                out_rgb[Y, X, 2] = S[_B + p] + tp * bg[2]
-                out_depth[Y, X] = S[_D + p]
-                out_T[Y, X] = tp
-                out_last[Y, X] = np.int32(S[_LAST + p])
+                            p = base + j
+                            S[_SP + p] = _composite_lane(S, p, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_,
+                                                         e_, kk, xe) + S[_SPM + p]
+                    pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)
+                    for j in range(U0, U8):
+                        stops += S[_SP + pl + j]
+                else:
+                    thr = _sigma_threshold(op)
+                    for py in range(y0, y1):
+                        dy = np.float32(py) + HALF - my
+                        x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
+                        cyy = HALF * c * dy * dy
+                        bdy = b * dy
+                        row = (py - oy) * TILE - ox
+                        for c0 in range(x0, x1, 8):
+                            base = np.uint64(row + c0)
+                            n_in = np.float32(x1 - c0)
+                            dx0 = np.float32(c0) + HALF - mx
+                            for j in range(U0, U8):
+                                stops += _composite_lane(S, base + j, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_,
+                                                         b_, z_, e_, kk, xe)
+                alive -= stops
+                if alive <= F0:
+                    break
+            for yy in range(th):
+                for xx in range(tw):
+                    p = yy * TILE + xx
+                    Y = oy + yy
+                    X = ox + xx
+                    tp = abs(S[p])
+                    out_rgb[Y, X, 0] = S[_R + p] + tp * bg[0]
+                    out_rgb[Y, X, 1] = S[_G + p] + tp * bg[1]
+                    out_rgb[Y, X, 2] = S[_B + p] + tp * bg[2]
+                    out_depth[Y, X] = S[_D + p]
+                    out_T[Y, X] = tp
+                    out_last[Y, X] = np.int32(S[_LAST + p])
+                    if xe:
+                        out_extra[Y, X] = S[_E + p]
+
+    return raster_forward
+
+
+raster_forward = _raster_forward_kernel(False)
+raster_forward_extra = _raster_forward_kernel(True)
 
 
 @njit(inline="always", **_JIT)
-def _unblend_lane(S, p, lj, dx, n_in, kk, a, cyy, bdy, op, r_, g_, b_, z_):
+def _unblend_lane(S, p, lj, dx, n_in, kk, a, cyy, bdy, op, r_, g_, b_, z_, e_, xe):
     """One lane of :func:`raster_backward` for the instance ``kk`` (back to front): restore
     the transmittance before it (``S[_BT]``) and the upstream-weighted colour behind it
     (``S[_BB]``; only the sum ``B = sum_ch g_ch B_ch`` matters, it follows the same
@@ -692,7 +722,8 @@ def _unblend_lane(S, p, lj, dx, n_in, kk, a, cyy, bdy, op, r_, g_, b_, z_):
     gradients (r, g, b, depth) and ``u = dL/dalpha * gau``. Wherever ``u != 0`` the alpha
     is unclamped (``al = op gau``; the 0.99 clamp has zero gradient), so
     ``dL/dsigma = -op u``, which with ``u`` itself is all the conic, mean and opacity
-    gradients need. Branch-free selects, so the 8-lane loops around it still vectorise."""
+    gradients need. ``xe`` (compile-time) adds the extra channel ``e_`` (upstream gradient in
+    ``S[_GE]``) to ``cdot``. Branch-free selects, so the 8-lane loops around it still vectorise."""
     sig = HALF * a * dx * dx + cyy + bdy * dx
     gau = _exp_neg(sig)
     raw = op * gau
@@ -704,6 +735,8 @@ def _unblend_lane(S, p, lj, dx, n_in, kk, a, cyy, bdy, op, r_, g_, b_, z_):
     gr, gg, gb = S[_GR + p], S[_GG + p], S[_GB + p]
     gd, ga = S[_GD + p], S[_GA + p]
     cdot = gr * r_ + gg * g_ + gb * b_ + gd * z_ + ga
+    if xe:
+        cdot += S[_GE + p] * e_
     bdot = S[_BB + p]
     dal = tb * (cdot - bdot)
     S[_BB + p] = alv * cdot + om * bdot
@@ -720,210 +753,225 @@ _RS = 8 * NPAD + TILE
 (_SR, _SG, _SB, _SZ, _SU, _SX, _SXX, _SY, _SXY, _SYY) = (np.uint64(_RS + k * RSTRIDE) for k in range(10))
 (_PR, _PG, _PB, _PZ, _PU, _PX, _PXX, _PY, _PXY, _PYY) = (np.uint64(_RS + k * RSTRIDE - TILE) for k in range(10))
 SLEN = _RS + 10 * RSTRIDE
+_GE = np.uint64(SLEN)  # the extra channel's upstream gradient (variant with an extra channel)
+SLEN_X = SLEN + NPAD
 
 
-@njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
-def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out_last,
-                    g_rgb, g_alpha, g_depth, grads):
-    """Reverse-order backward of :func:`raster_forward` (as in 3DGS).
+def _raster_backward_kernel(xe):
+    """:func:`raster_backward` without (``xe`` False) or with the extra channel (see
+    :func:`_raster_forward_kernel`)."""
 
-    ``g_rgb [H,W,3]``, ``g_alpha [H,W]``, ``g_depth [H,W]`` are upstream gradients.
-    Fills and returns ``grads``, the per-instance gradients ``[I, 10]``: (mx, my, a, b, c,
-    opacity, r, g, b, z), each instance's row at its R_SLOT (Gaussian-major order, so the per-Gaussian sums read
-    contiguous rows). Instances whose pixel box in the tile is at most 8 wide (nearly all
-    at the benchmark sizes) carry per-lane sums down their rows; wider ones sum each row
-    (over its exact span) horizontally.
-    ``reassoc`` lets LLVM vectorise the per-Gaussian sums over pixels."""
-    ntiles = offsets.shape[0] - 1
-    for tile in prange(ntiles):
-        tyi = tile // tiles_x
-        txi = tile - tyi * tiles_x
-        ox = txi * TILE
-        oy = tyi * TILE
-        tw = min(TILE, width - ox)
-        th = min(TILE, height - oy)
-        # T, last, then B (what lies behind the current Gaussian per unit transmittance
-        # after it, dotted with the upstream gradient; starts as g . background), then the
-        # upstream gradients. Zeros elsewhere keep masked lanes inert (last = 0 masks them).
-        S = np.zeros(SLEN, np.float32)  # 8 fields, then the 10 running sums (narrow path)
-        maxlast = 0
-        for yy in range(th):
-            for xx in range(tw):
-                p = yy * TILE + xx
-                Y = oy + yy
-                X = ox + xx
-                S[_BT + p] = out_T[Y, X]
-                S[_BLAST + p] = np.float32(out_last[Y, X])
-                maxlast = max(maxlast, out_last[Y, X])
-                S[_BB + p] = g_rgb[Y, X, 0] * bg[0] + g_rgb[Y, X, 1] * bg[1] + g_rgb[Y, X, 2] * bg[2]
-                S[_GR + p] = g_rgb[Y, X, 0]
-                S[_GG + p] = g_rgb[Y, X, 1]
-                S[_GB + p] = g_rgb[Y, X, 2]
-                S[_GD + p] = g_depth[Y, X]
-                S[_GA + p] = g_alpha[Y, X]
-        start = offsets[tile]
-        # entries past every pixel's last composited one get zero gradient
-        for k in range(start + maxlast, offsets[tile + 1]):
-            for f in range(10):
-                grads[idata[k, R_SLOT], f] = F0
-        for k in range(start + maxlast - 1, start - 1, -1):
-            mx, my = data[k, R_MX], data[k, R_MY]
-            a, b, c = data[k, R_A], data[k, R_B], data[k, R_C]
-            op = data[k, R_OP]
-            r_, g_, b_, z_ = data[k, R_R], data[k, R_G], data[k, R_BL], data[k, R_Z]
-            thr = data[k, R_THR]
-            y0 = max(idata[k, R_Y0], oy)
-            y1 = min(idata[k, R_Y1], oy + th)
-            bx0 = max(idata[k, R_X0], ox)
-            bx1 = min(idata[k, R_X1], ox + tw)
-            narrow = bx1 - bx0 <= 8
-            kk = np.float32(k - start)
-            if narrow:
-                # One 8-lane chunk per row, all at column bx0. Per-lane running sums are
-                # carried down the rows in S (row r stores its chunk plus row r-1's sums, an
-                # offset of -TILE from the same base, so LLVM still sees one base pointer
-                # and vectorises): the horizontal reductions happen once per instance
-                # instead of once per row (~30% less raster-backward time at these sizes).
-                # The row above the first one starts the sums at zero.
-                p0 = np.uint64((y0 - oy) * TILE - ox + bx0)
-                for j in range(U0, U8):
-                    S[_PR + p0 + j] = F0
-                    S[_PG + p0 + j] = F0
-                    S[_PB + p0 + j] = F0
-                    S[_PZ + p0 + j] = F0
-                    S[_PU + p0 + j] = F0
-                    S[_PX + p0 + j] = F0
-                    S[_PXX + p0 + j] = F0
-                    S[_PY + p0 + j] = F0
-                    S[_PXY + p0 + j] = F0
-                    S[_PYY + p0 + j] = F0
-                n_in = np.float32(bx1 - bx0)
-                dx0 = np.float32(bx0) + HALF - mx
-                for py in range(y0, y1):
-                    dy = np.float32(py) + HALF - my
-                    cyy = HALF * c * dy * dy
-                    bdy = b * dy
-                    dyy = dy * dy
-                    base = np.uint64((py - oy) * TILE - ox + bx0)
+    @njit(parallel=True, fastmath={"reassoc", "contract"}, **_JIT)
+    def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out_last,
+                        g_rgb, g_alpha, g_depth, g_extra, grads):
+        """Reverse-order backward of :func:`raster_forward` (as in 3DGS).
+
+        ``g_rgb [H,W,3]``, ``g_alpha [H,W]``, ``g_depth [H,W]`` (and with ``xe``
+        ``g_extra [H,W]``) are upstream gradients; the extra channel itself gets none.
+        Fills and returns ``grads``, the per-instance gradients ``[I, 10]``: (mx, my, a, b, c,
+        opacity, r, g, b, z), each instance's row at its R_SLOT (Gaussian-major order, so the per-Gaussian sums read
+        contiguous rows). Instances whose pixel box in the tile is at most 8 wide (nearly all
+        at the benchmark sizes) carry per-lane sums down their rows; wider ones sum each row
+        (over its exact span) horizontally.
+        ``reassoc`` lets LLVM vectorise the per-Gaussian sums over pixels."""
+        ntiles = offsets.shape[0] - 1
+        for tile in prange(ntiles):
+            tyi = tile // tiles_x
+            txi = tile - tyi * tiles_x
+            ox = txi * TILE
+            oy = tyi * TILE
+            tw = min(TILE, width - ox)
+            th = min(TILE, height - oy)
+            # T, last, then B (what lies behind the current Gaussian per unit transmittance
+            # after it, dotted with the upstream gradient; starts as g . background), then the
+            # upstream gradients. Zeros elsewhere keep masked lanes inert (last = 0 masks them).
+            S = np.zeros(SLEN_X if xe else SLEN, np.float32)  # 8 fields, the 10 running sums (narrow path)
+            maxlast = 0
+            for yy in range(th):
+                for xx in range(tw):
+                    p = yy * TILE + xx
+                    Y = oy + yy
+                    X = ox + xx
+                    S[_BT + p] = out_T[Y, X]
+                    S[_BLAST + p] = np.float32(out_last[Y, X])
+                    maxlast = max(maxlast, out_last[Y, X])
+                    S[_BB + p] = g_rgb[Y, X, 0] * bg[0] + g_rgb[Y, X, 1] * bg[1] + g_rgb[Y, X, 2] * bg[2]
+                    S[_GR + p] = g_rgb[Y, X, 0]
+                    S[_GG + p] = g_rgb[Y, X, 1]
+                    S[_GB + p] = g_rgb[Y, X, 2]
+                    S[_GD + p] = g_depth[Y, X]
+                    S[_GA + p] = g_alpha[Y, X]
+                    if xe:
+                        S[_GE + p] = g_extra[Y, X]
+            start = offsets[tile]
+            # entries past every pixel's last composited one get zero gradient
+            for k in range(start + maxlast, offsets[tile + 1]):
+                for f in range(10):
+                    grads[idata[k, R_SLOT], f] = F0
+            for k in range(start + maxlast - 1, start - 1, -1):
+                mx, my = data[k, R_MX], data[k, R_MY]
+                a, b, c = data[k, R_A], data[k, R_B], data[k, R_C]
+                op = data[k, R_OP]
+                r_, g_, b_, z_, e_ = data[k, R_R], data[k, R_G], data[k, R_BL], data[k, R_Z], data[k, R_E]
+                y0 = max(idata[k, R_Y0], oy)
+                y1 = min(idata[k, R_Y1], oy + th)
+                bx0 = max(idata[k, R_X0], ox)
+                bx1 = min(idata[k, R_X1], ox + tw)
+                narrow = bx1 - bx0 <= 8
+                kk = np.float32(k - start)
+                if narrow:
+                    # One 8-lane chunk per row, all at column bx0. Per-lane running sums are
+                    # carried down the rows in S (row r stores its chunk plus row r-1's sums, an
+                    # offset of -TILE from the same base, so LLVM still sees one base pointer
+                    # and vectorises): the horizontal reductions happen once per instance
+                    # instead of once per row (~30% less raster-backward time at these sizes).
+                    # The row above the first one starts the sums at zero.
+                    p0 = np.uint64((y0 - oy) * TILE - ox + bx0)
                     for j in range(U0, U8):
-                        p = base + j
-                        dx = dx0 + LANE[j]
-                        wgt, gr, gg, gb, gd, u = _unblend_lane(S, p, LANE[j], dx, n_in, kk, a, cyy, bdy, op,
-                                                               r_, g_, b_, z_)
-                        ux = u * dx
-                        S[_SR + p] = wgt * gr + S[_PR + p]
-                        S[_SG + p] = wgt * gg + S[_PG + p]
-                        S[_SB + p] = wgt * gb + S[_PB + p]
-                        S[_SZ + p] = wgt * gd + S[_PZ + p]
-                        S[_SU + p] = u + S[_PU + p]
-                        S[_SX + p] = ux + S[_PX + p]
-                        S[_SXX + p] = ux * dx + S[_PXX + p]
-                        S[_SY + p] = u * dy + S[_PY + p]
-                        S[_SXY + p] = ux * dy + S[_PXY + p]
-                        S[_SYY + p] = u * dyy + S[_PYY + p]
-                s_r = F0
-                s_g = F0
-                s_bb = F0
-                s_z = F0
-                s_o = F0
-                t_x = F0
-                t_xx = F0
-                t_y = F0
-                t_xy = F0
-                t_yy = F0
-                if y1 > y0:  # always, for an instance binned to this tile
-                    pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)  # the last row
-                    for j in range(U0, U8):
-                        p = pl + j
-                        s_r += S[_SR + p]
-                        s_g += S[_SG + p]
-                        s_bb += S[_SB + p]
-                        s_z += S[_SZ + p]
-                        s_o += S[_SU + p]
-                        t_x += S[_SX + p]
-                        t_xx += S[_SXX + p]
-                        t_y += S[_SY + p]
-                        t_xy += S[_SXY + p]
-                        t_yy += S[_SYY + p]
-                # the row sums of the wide path below, summed over rows: sum_rows (a q1 + b dy q0)
-                # = a t_x + b t_y and so on
-                s_mx = a * t_x + b * t_y
-                s_my = b * t_x + c * t_y
-                s_a = -t_xx
-                s_b = -t_xy
-                s_c = -t_yy
-                opq = op * HALF
-                s_mx *= op
-                s_my *= op
-                s_a *= opq
-                s_b *= op
-                s_c *= opq
-            else:
-                s_mx = F0
-                s_my = F0
-                s_a = F0
-                s_b = F0
-                s_c = F0
-                s_o = F0
-                s_r = F0
-                s_g = F0
-                s_bb = F0
-                s_z = F0
-                for py in range(y0, y1):
-                    dy = np.float32(py) + HALF - my
-                    x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
-                    cyy = HALF * c * dy * dy
-                    bdy = b * dy
-                    row = (py - oy) * TILE - ox
-                    # dy is constant along the row, so the opacity, conic and mean gradients
-                    # only need three sums over the row's pixels (u, u dx, u dx^2, see below):
-                    # fewer per-lane products and horizontal reductions per chunk.
-                    q0 = F0
-                    q1 = F0
-                    q2 = F0
-                    for c0 in range(x0, x1, 8):
-                        base = np.uint64(row + c0)
-                        n_in = np.float32(x1 - c0)
-                        dx0 = np.float32(c0) + HALF - mx
+                        S[_PR + p0 + j] = F0
+                        S[_PG + p0 + j] = F0
+                        S[_PB + p0 + j] = F0
+                        S[_PZ + p0 + j] = F0
+                        S[_PU + p0 + j] = F0
+                        S[_PX + p0 + j] = F0
+                        S[_PXX + p0 + j] = F0
+                        S[_PY + p0 + j] = F0
+                        S[_PXY + p0 + j] = F0
+                        S[_PYY + p0 + j] = F0
+                    n_in = np.float32(bx1 - bx0)
+                    dx0 = np.float32(bx0) + HALF - mx
+                    for py in range(y0, y1):
+                        dy = np.float32(py) + HALF - my
+                        cyy = HALF * c * dy * dy
+                        bdy = b * dy
+                        dyy = dy * dy
+                        base = np.uint64((py - oy) * TILE - ox + bx0)
                         for j in range(U0, U8):
                             p = base + j
                             dx = dx0 + LANE[j]
-                            wgt, gr, gg, gb, gd, u = _unblend_lane(S, p, LANE[j], dx, n_in, kk, a, cyy, bdy,
-                                                                   op, r_, g_, b_, z_)
-                            s_r += wgt * gr
-                            s_g += wgt * gg
-                            s_bb += wgt * gb
-                            s_z += wgt * gd
+                            wgt, gr, gg, gb, gd, u = _unblend_lane(S, p, LANE[j], dx, n_in, kk, a, cyy, bdy, op,
+                                                                   r_, g_, b_, z_, e_, xe)
                             ux = u * dx
-                            q0 += u
-                            q1 += ux
-                            q2 += ux * dx
-                    # d sigma / d(mx, my, a, b, c) = (-(a dx + b dy), -(b dx + c dy), dx^2/2, dx dy, dy^2/2),
-                    # times dL/dsigma = -op u; the factor op (and 1/2) is applied once per instance
-                    s_o += q0
-                    s_mx += a * q1 + bdy * q0
-                    s_my += b * q1 + c * dy * q0
-                    s_a -= q2
-                    s_b -= dy * q1
-                    s_c -= dy * dy * q0
-                opq = op * HALF
-                s_mx *= op
-                s_my *= op
-                s_a *= opq
-                s_b *= op
-                s_c *= opq
-            slot = idata[k, R_SLOT]
-            grads[slot, 0] = s_mx
-            grads[slot, 1] = s_my
-            grads[slot, 2] = s_a
-            grads[slot, 3] = s_b
-            grads[slot, 4] = s_c
-            grads[slot, 5] = s_o
-            grads[slot, 6] = s_r
-            grads[slot, 7] = s_g
-            grads[slot, 8] = s_bb
-            grads[slot, 9] = s_z
-    return grads
+                            S[_SR + p] = wgt * gr + S[_PR + p]
+                            S[_SG + p] = wgt * gg + S[_PG + p]
+                            S[_SB + p] = wgt * gb + S[_PB + p]
+                            S[_SZ + p] = wgt * gd + S[_PZ + p]
+                            S[_SU + p] = u + S[_PU + p]
+                            S[_SX + p] = ux + S[_PX + p]
+                            S[_SXX + p] = ux * dx + S[_PXX + p]
+                            S[_SY + p] = u * dy + S[_PY + p]
+                            S[_SXY + p] = ux * dy + S[_PXY + p]
+                            S[_SYY + p] = u * dyy + S[_PYY + p]
+                    s_r = F0
+                    s_g = F0
+                    s_bb = F0
+                    s_z = F0
+                    s_o = F0
+                    t_x = F0
+                    t_xx = F0
+                    t_y = F0
+                    t_xy = F0
+                    t_yy = F0
+                    if y1 > y0:  # always, for an instance binned to this tile
+                        pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)  # the last row
+                        for j in range(U0, U8):
+                            p = pl + j
+                            s_r += S[_SR + p]
+                            s_g += S[_SG + p]
+                            s_bb += S[_SB + p]
+                            s_z += S[_SZ + p]
+                            s_o += S[_SU + p]
+                            t_x += S[_SX + p]
+                            t_xx += S[_SXX + p]
+                            t_y += S[_SY + p]
+                            t_xy += S[_SXY + p]
+                            t_yy += S[_SYY + p]
+                    # the row sums of the wide path below, summed over rows: sum_rows (a q1 + b dy q0)
+                    # = a t_x + b t_y and so on
+                    s_mx = a * t_x + b * t_y
+                    s_my = b * t_x + c * t_y
+                    s_a = -t_xx
+                    s_b = -t_xy
+                    s_c = -t_yy
+                    opq = op * HALF
+                    s_mx *= op
+                    s_my *= op
+                    s_a *= opq
+                    s_b *= op
+                    s_c *= opq
+                else:
+                    s_mx = F0
+                    s_my = F0
+                    s_a = F0
+                    s_b = F0
+                    s_c = F0
+                    s_o = F0
+                    s_r = F0
+                    s_g = F0
+                    s_bb = F0
+                    s_z = F0
+                    thr = _sigma_threshold(op)
+                    for py in range(y0, y1):
+                        dy = np.float32(py) + HALF - my
+                        x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
+                        cyy = HALF * c * dy * dy
+                        bdy = b * dy
+                        row = (py - oy) * TILE - ox
+                        # dy is constant along the row, so the opacity, conic and mean gradients
+                        # only need three sums over the row's pixels (u, u dx, u dx^2, see below):
+                        # fewer per-lane products and horizontal reductions per chunk.
+                        q0 = F0
+                        q1 = F0
+                        q2 = F0
+                        for c0 in range(x0, x1, 8):
+                            base = np.uint64(row + c0)
+                            n_in = np.float32(x1 - c0)
+                            dx0 = np.float32(c0) + HALF - mx
+                            for j in range(U0, U8):
+                                p = base + j
+                                dx = dx0 + LANE[j]
+                                wgt, gr, gg, gb, gd, u = _unblend_lane(S, p, LANE[j], dx, n_in, kk, a, cyy, bdy,
+                                                                       op, r_, g_, b_, z_, e_, xe)
+                                s_r += wgt * gr
+                                s_g += wgt * gg
+                                s_bb += wgt * gb
+                                s_z += wgt * gd
+                                ux = u * dx
+                                q0 += u
+                                q1 += ux
+                                q2 += ux * dx
+                        # d sigma / d(mx, my, a, b, c) = (-(a dx + b dy), -(b dx + c dy), dx^2/2, dx dy, dy^2/2),
+                        # times dL/dsigma = -op u; the factor op (and 1/2) is applied once per instance
+                        s_o += q0
+                        s_mx += a * q1 + bdy * q0
+                        s_my += b * q1 + c * dy * q0
+                        s_a -= q2
+                        s_b -= dy * q1
+                        s_c -= dy * dy * q0
+                    opq = op * HALF
+                    s_mx *= op
+                    s_my *= op
+                    s_a *= opq
+                    s_b *= op
+                    s_c *= opq
+                slot = idata[k, R_SLOT]
+                grads[slot, 0] = s_mx
+                grads[slot, 1] = s_my
+                grads[slot, 2] = s_a
+                grads[slot, 3] = s_b
+                grads[slot, 4] = s_c
+                grads[slot, 5] = s_o
+                grads[slot, 6] = s_r
+                grads[slot, 7] = s_g
+                grads[slot, 8] = s_bb
+                grads[slot, 9] = s_z
+        return grads
+
+    return raster_backward
+
+
+raster_backward = _raster_backward_kernel(False)
+raster_backward_extra = _raster_backward_kernel(True)
 
 
 @njit(parallel=True, **_JIT)

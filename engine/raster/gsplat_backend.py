@@ -18,14 +18,22 @@ from __future__ import annotations
 import torch
 
 
-def render_gsplat(means, quats, scales, opacities, colors, w2c, K, width, height, near, far, background):
-    """Render with gsplat; returns :class:`engine.raster.api.RenderOutput`."""
+def render_gsplat(means, quats, scales, opacities, colors, w2c, K, width, height, near, far, background,
+                  extra=None):
+    """Render with gsplat; returns :class:`engine.raster.api.RenderOutput`. ``extra [N]``
+    rides along as a fourth colour channel (background 0, detached)."""
     import gsplat
 
     from .api import RenderOutput
 
     dev = means.device
-    bg = None if background is None else background.to(dev, means.dtype)[None]
+    bg = None if background is None else background.to(dev, means.dtype)
+    nc = colors.shape[-1]
+    if extra is not None:
+        colors = torch.cat([colors, extra.detach().to(colors)[:, None]], -1)
+        if bg is not None:
+            bg = torch.cat([bg, bg.new_zeros(1)])
+    bg = None if bg is None else bg[None]
     rendered, alphas, meta = gsplat.rasterization(
         means, quats, scales, opacities, colors, w2c.to(dev, means.dtype)[None], K.to(dev, means.dtype)[None],
         int(width), int(height), near_plane=float(near), far_plane=float(far), render_mode="RGB+D",
@@ -37,6 +45,7 @@ def render_gsplat(means, quats, scales, opacities, colors, w2c, K, width, height
     if radii.dim() == 2:  # gsplat >= 1.5 returns per-axis radii [N, 2]
         radii = radii.max(dim=-1).values
     radii = radii.to(torch.int32)
-    return RenderOutput(rgb=rendered[0, ..., :3], alpha=alphas[0], depth=rendered[0, ..., 3:4],
+    ex = rendered[0, ..., nc:nc + 1] if extra is not None else None
+    return RenderOutput(rgb=rendered[0, ..., :nc], alpha=alphas[0], depth=rendered[0, ..., -1:],
                         radii=radii, means2d=means2d,
-                        visible=radii > 0, backend="gsplat")
+                        visible=radii > 0, backend="gsplat", extra=ex)

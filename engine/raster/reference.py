@@ -112,7 +112,7 @@ def project(means, quats, scales, opacities, w2c, K, width, height, near=0.01, f
     return means2d, conics, z, radii, extents
 
 
-def rasterize(means2d, conics, depths, colors, opacities, visible, width, height, background=None):
+def rasterize(means2d, conics, depths, colors, opacities, visible, width, height, background=None, extra=None):
     """Dense front-to-back compositing (the oracle).
 
     Parameters
@@ -120,23 +120,32 @@ def rasterize(means2d, conics, depths, colors, opacities, visible, width, height
     means2d [N, 2], conics [N, 3], depths [N], colors [N, 3], opacities [N]
     visible [N] bool : Gaussians to composite (``radii > 0``).
     background [3] or None (black).
+    extra [N] or None : a per-Gaussian scalar composited like a colour channel with no
+        background; not differentiated itself (detached).
 
     Returns
     -------
     rgb [H, W, 3], alpha [H, W, 1], depth [H, W, 1] (``sum_i w_i z_i``, *not* divided by
-    alpha), final transmittance [H, W, 1].
+    alpha), final transmittance [H, W, 1]; with ``extra`` also its image [H, W, 1] (a fifth
+    value).
     """
     dtype, dev = means2d.dtype, means2d.device
     idx = torch.nonzero(visible, as_tuple=False).flatten()
     order = idx[torch.sort(depths.detach()[idx], stable=True).indices]
     m2, cn, dz = means2d[order], conics[order], depths[order]
     col, op = colors[order], opacities[order]
+    if extra is not None:  # one more colour channel; the background gets a 0 for it
+        col = torch.cat([col, extra.detach().to(col)[order, None]], 1)
+        if background is not None:
+            background = torch.cat([background.to(col), torch.zeros(1, dtype=col.dtype, device=col.device)])
     # pixels are independent: composite bands of rows so the dense [pixels, n] temporaries
     # stay near DENSE_BUDGET elements (a full 240x180 frame of 30k Gaussians would be 5 GB each)
     band = max(1, min(height, DENSE_BUDGET // max(1, len(order) * width)))
     outs = [_composite_rows(m2, cn, dz, col, op, y0, min(height, y0 + band), width, background)
             for y0 in range(0, height, band)]
     rgb, alpha, depth, T_final = (torch.cat(parts, 0) for parts in zip(*outs))
+    if extra is not None:
+        return rgb[..., :3], alpha, depth, T_final, rgb[..., 3:]
     return rgb, alpha, depth, T_final
 
 
@@ -168,5 +177,5 @@ def _composite_rows(m2, cn, dz, col, op, y0: int, y1: int, width: int, backgroun
     if background is not None:
         rgb = rgb + T_final * background.to(dtype)
     depth = w @ dz[:, None]
-    return (rgb.reshape(height, width, 3), (1.0 - T_final).reshape(height, width, 1),
+    return (rgb.reshape(height, width, col.shape[1]), (1.0 - T_final).reshape(height, width, 1),
             depth.reshape(height, width, 1), T_final.reshape(height, width, 1))

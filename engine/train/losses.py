@@ -171,7 +171,8 @@ def mask_loss(alpha: torch.Tensor, dyn_alpha: torch.Tensor, fg_prior: torch.Tens
     Parameters
     ----------
     alpha : (H, W, 1) total rendered alpha (unused weight; kept for API symmetry).
-    dyn_alpha : (H, W, 1) alpha rendered with colours = per-Gaussian dynamic score.
+    dyn_alpha : (H, W, 1) the per-Gaussian dynamic score composited like a colour (the
+        trainer renders it as the colour pass's ``extra`` channel).
     fg_prior : (H, W) dynamic/foreground prior in [0, 1].
     """
     return F.binary_cross_entropy(dyn_alpha.squeeze(-1).clamp(1e-4, 1 - 1e-4), fg_prior.clamp(0, 1))

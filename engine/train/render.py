@@ -33,7 +33,7 @@ def scene_colors(model, means: torch.Tensor, w2c: torch.Tensor) -> torch.Tensor:
 
 def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
                  width: int, height: int, colors: torch.Tensor | None = None, backend: str = "auto",
-                 background: torch.Tensor | None = None):
+                 background: torch.Tensor | None = None, extra: torch.Tensor | None = None):
     """Render deformed Gaussians of ``model`` from one camera.
 
     Parameters
@@ -47,6 +47,9 @@ def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tenso
         Render these colours instead of the model's SH (e.g. a dynamic-score mask).
     backend : str
         Rasteriser backend name (``auto`` picks the fastest available).
+    extra : (G,), optional
+        A per-Gaussian scalar composited in the same pass (``RenderOutput.extra [H, W, 1]``),
+        e.g. the dynamic score of the mask term; see :func:`engine.raster.render`.
 
     Returns
     -------
@@ -54,7 +57,7 @@ def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tenso
     ``radii [G]`` and ``means2d [G, 2]`` (its ``.grad`` feeds densification).
     """
     kwargs = dict(means=means, quats=quats, scales=model.scales(), opacities=model.opacities(), w2c=w2c, K=K,
-                  width=width, height=height, background=background, backend=backend)
+                  width=width, height=height, background=background, backend=backend, extra=extra)
     if colors is not None:
         return raster.render(colors=colors, **kwargs)
     return raster.render(sh=model.sh(), sh_degree=model.sh_degree, **kwargs)

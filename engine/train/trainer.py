@@ -436,9 +436,12 @@ class Trainer:
             means_t, quats_t = m.deform(t, dq_nodes=dq_nodes)
         with ph("sh"):  # the colour raster.render would compute from sh=..., timed on its own
             colors = scene_colors(m, means_t, d.w2c[f])
+        # the mask term (every 4th step) renders the Gaussians' dynamic score as an extra
+        # channel of the colour pass instead of a second render
+        mask_now = w.mask > 0 and d.fg is not None and self.step % 4 == 0
         with ph("raster_fwd"):
             out = render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, colors=colors,
-                               backend=self.cfg.backend)
+                               backend=self.cfg.backend, extra=self._dynamic_score() if mask_now else None)
         with ph("losses"):
             return self._loss_terms(f, t, out, means_t, quats_t, (pos_t, rot_t, dq_nodes))
 
@@ -455,11 +458,8 @@ class Trainer:
             # the rasteriser accumulates sum(w_i z_i); divide by alpha for the expected depth
             depth = out.depth[..., 0] / out.alpha[..., 0].detach().clamp_min(1e-6)
             terms["depth"] = w.depth * L.depth_shift_scale_invariant(depth, prior, valid)
-        if w.mask > 0 and d.fg is not None and self.step % 4 == 0:
-            dyn = self._dynamic_colors()
-            dyn_out = render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, colors=dyn,
-                                   backend=self.cfg.backend)
-            terms["mask"] = w.mask * L.mask_loss(out.alpha, dyn_out.rgb[..., :1], d.fg[f])
+        if out.extra is not None:  # a mask step (see _loss)
+            terms["mask"] = w.mask * L.mask_loss(out.alpha, out.extra, d.fg[f])
         if self.track_canon is not None and w.track > 0 and self.step >= self.cfg.warmup_static_steps:
             vis = self.track_vis[self.track_ids, f]
             if vis.any():
@@ -530,17 +530,17 @@ class Trainer:
             e = 0.5 * ((((pos_t - pos_1) / m.extent) ** 2).sum(-1) + ((rot_t - rot_1) ** 2).sum(-1) * arm)
         return (s * e).sum()
 
-    def _dynamic_colors(self) -> torch.Tensor:
-        """Per-Gaussian dynamic score as colours [G, 3] for the mask render: the bound
-        nodes' ``p_dyn`` blended by the binding weights. It changes only when the binding
-        or the nodes do (rebind / densification assign new tensors), so it is cached on
-        the identity and version of its inputs."""
+    def _dynamic_score(self) -> torch.Tensor:
+        """Per-Gaussian dynamic score [G] for the mask term (the colour pass's extra
+        channel): the bound nodes' ``p_dyn`` blended by the binding weights. It changes only
+        when the binding or the nodes do (rebind / densification assign new tensors), so it
+        is cached on the identity and version of its inputs."""
         m = self.model
         key = (m.bind_idx, m.bind_w, m.node_p_dyn)
         versions = tuple(x._version for x in key)
         c = getattr(self, "_dyn_cache", None)
         if c is None or any(a is not b for a, b in zip(c[0], key)) or c[1] != versions:
-            dyn = (m.node_p_dyn[m.bind_idx] * m.bind_w).sum(-1, keepdim=True).expand(-1, 3)
+            dyn = (m.node_p_dyn[m.bind_idx] * m.bind_w).sum(-1).contiguous()
             self._dyn_cache = c = (key, versions, dyn)
         return c[2]
 

@@ -52,15 +52,18 @@ def _scene(n=160, seed=0, sh_degree=None):
     return p
 
 
-def _run(backend, scene, dtype, sh_degree=None, seed=1):
+def _run(backend, scene, dtype, sh_degree=None, seed=1, extra=None):
     w2c, K = _camera(dtype)
     leaves = {k: v.clone().to(dtype).requires_grad_(True) for k, v in scene.items()}
     out = render(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"],
                  colors=leaves.get("colors"), sh=leaves.get("sh"), sh_degree=sh_degree,
-                 w2c=w2c, K=K, width=W, height=H, background=leaves["background"], backend=backend)
+                 w2c=w2c, K=K, width=W, height=H, background=leaves["background"], backend=backend,
+                 extra=None if extra is None else extra.to(dtype))
     g = torch.Generator().manual_seed(seed)
-    wr, wa, wd = (torch.randn(H, W, c, generator=g).to(dtype) for c in (3, 1, 1))
+    wr, wa, wd, we = (torch.randn(H, W, c, generator=g).to(dtype) for c in (3, 1, 1, 1))
     loss = (out.rgb * wr).sum() + (out.alpha * wa).sum() + 0.2 * (out.depth * wd).sum()
+    if extra is not None:
+        loss = loss + 0.7 * (out.extra * we).sum()
     loss.backward()
     grads = {k: v.grad for k, v in leaves.items()}
     grads["means2d"] = out.grad2d()
@@ -211,6 +214,50 @@ def test_scratch_pool_reuses_only_free_buffers():
     del b, c
     d = cpu_numba.pooled("test_pool", 10_000, np.float32)  # grows
     assert d.shape == (10_000,)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_extra_channel_matches_reference_and_a_second_render(seed):
+    """``extra`` rides in the colour pass: the cpu kernels' extra variant against the
+    reference, and against what it replaces -- a second render with the scalar as colour
+    and no background, whose gradient adds to the first's."""
+    scene = _scene(seed=seed)
+    extra = torch.rand(len(scene["means"]), generator=torch.Generator().manual_seed(seed)).double()
+    ref, gref = _run("reference", scene, torch.float64, extra=extra)
+    cpu, gcpu = _run("cpu", scene, torch.float32, extra=extra)
+    plain, gplain = _run("cpu", scene, torch.float32)
+    assert cpu.extra.shape == (H, W, 1) and plain.extra is None and ref.extra.shape == (H, W, 1)
+    assert (cpu.extra.double() - ref.extra).abs().max().item() <= 1e-4
+    assert cpu.extra.abs().max() > 0.1
+    for name in ("rgb", "alpha", "depth"):  # the colour pass is untouched by the extra channel
+        assert torch.equal(getattr(cpu, name), getattr(plain, name)), name
+    for name, g in gref.items():
+        assert _rel(gcpu[name], g) <= 1e-3, (name, _rel(gcpu[name], g))
+    # the extra term's gradient is really there: it moves the result away from the plain run
+    assert _rel(gcpu["means"], gplain["means"]) > 1e-2
+
+    # a second render of the scalar as a colour (the same weights) gives the same image,
+    # and its gradient is the difference between the two runs above
+    w2c, K = _camera(torch.float32)
+    leaves = {k: scene[k].float().requires_grad_(True) for k in ("means", "quats", "scales", "opacities")}
+    second = render(leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"],
+                    colors=extra.float()[:, None].expand(-1, 3).contiguous(), w2c=w2c, K=K, width=W, height=H,
+                    backend="cpu")
+    assert torch.allclose(second.rgb[..., :1], cpu.extra, atol=1e-6)
+    g = torch.Generator().manual_seed(1)
+    we = [torch.randn(H, W, c, generator=g) for c in (3, 1, 1, 1)][3]
+    (0.7 * (second.rgb[..., :1] * we).sum()).backward()
+    for name in ("means", "quats", "scales", "opacities"):
+        diff = gcpu[name] - gplain[name]
+        assert _rel(diff, leaves[name].grad) <= 1e-3, (name, _rel(diff, leaves[name].grad))
+
+
+def test_extra_channel_input_checks():
+    scene = _scene(n=30)
+    w2c, K = _camera()
+    with pytest.raises(ValueError, match="one value per Gaussian"):
+        render(scene["means"], scene["quats"], scene["scales"], scene["opacities"], colors=scene["colors"],
+               w2c=w2c, K=K, width=W, height=H, extra=torch.zeros(29, dtype=torch.float64))
 
 
 def test_dense_scene_early_termination():
