@@ -217,6 +217,47 @@ def arap_loss(pos_t0: torch.Tensor, pos_t1: torch.Tensor, rot_t1: torch.Tensor, 
     return err.mean()
 
 
+def arap_states(pos_t0: torch.Tensor, rot_t0: torch.Tensor, pos_t1: torch.Tensor, rot_t1: torch.Tensor,
+                graph_idx: torch.Tensor) -> torch.Tensor:
+    """:func:`arap_loss` between two node states given as positions ``[N, 3]`` and
+    quaternions ``[N, 4]`` (normalised here): the relative rotation of node ``i`` is
+    ``R(q̂1_i) R(q̂0_i)ᵀ``. The reference of :func:`engine.train.fused_reg.fused_arap`."""
+    from ..geometry.quaternion import quat_normalize, quat_to_matrix
+
+    rel = quat_to_matrix(quat_normalize(rot_t1)) @ quat_to_matrix(quat_normalize(rot_t0)).transpose(-1, -2)
+    return arap_loss(pos_t0, pos_t1, rel, graph_idx)
+
+
+def static_motion_keys(pos_keys: torch.Tensor, rot_keys: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor,
+                       extent: float, ref_pos: torch.Tensor | None = None,
+                       ref_rot: torch.Tensor | None = None) -> torch.Tensor:
+    """Motion energy of keyed node trajectories: ``Σ_i w_i (Var_k p_ik / extent² +
+    arm_i Var_k q̂_ik)`` (variances over the keys, summed over the components).
+
+    Parameters
+    ----------
+    pos_keys : (N, K, 3), rot_keys : (N, K, 4) spline / per-frame keys (rotations are
+        normalised here).
+    weight, arm : (N,) per-node weight and rotation arm (constants).
+    extent : scene extent (positions are measured in its units).
+    ref_pos : (N, K, 3), ref_rot : (N, K, 4), optional constants subtracted from the keys
+        and the normalised rotations first (the trainer's ``static_init`` reference).
+
+    The reference of :func:`engine.train.fused_reg.fused_key_terms`.
+    """
+    from ..geometry.quaternion import quat_normalize
+
+    pk, q = pos_keys, quat_normalize(rot_keys)
+    if ref_pos is not None:
+        pk = pk - ref_pos
+    if ref_rot is not None:
+        q = q - ref_rot
+    pk = pk / extent
+    e = ((pk - pk.mean(1, keepdim=True)) ** 2).sum(-1).mean(1)
+    e = e + ((q - q.mean(1, keepdim=True)) ** 2).sum(-1).mean(1) * arm
+    return (weight * e).sum()
+
+
 def spline_smoothness(keys: torch.Tensor, key_times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Velocity and acceleration energies of spline keys.
 

@@ -27,12 +27,16 @@ from ..protocol import Reporter
 from . import losses as L
 from .config import TrainConfig
 from .data import TrainingData
+from .fused_reg import fused_arap, fused_key_terms, fused_reg_available
 from .model import DynamicScene
 from .phases import no_phase
 from .render import render_scene, scene_colors
 
 GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 CHECKPOINT_NAME = "checkpoint.pt"
+#: ARAP / static-motion / smoothness through engine/train/fused_reg.py on the CPU (tests
+#: switch it off to compare with the torch versions)
+FUSED_REG = True
 
 
 # ----------------------------------------------------------------------------------
@@ -475,22 +479,30 @@ class Trainer:
         motion_on = self.step >= self.cfg.warmup_static_steps
         arap_on = w.arap > 0 and m.graph_idx.shape[1] > 0 and motion_on
         static_on = w.static > 0 and motion_on
+        smooth_on = m.pos_keys is not None and (w.velocity > 0 or w.acceleration > 0) and self.cfg.motion == "spline"
+        # the node-graph terms in one Numba pass each on the CPU (engine/train/fused_reg.py;
+        # the torch versions below are their references and the CUDA path)
+        fused = FUSED_REG and fused_reg_available(pos_t)
         state_t1 = None
         if arap_on or static_on and m.mlp is not None:
             # a second random time, shared by ARAP and the MLP's static-motion term
             t1 = float(torch.rand((), generator=self.gen))
             state_t1 = m.node_state(t1)
         if arap_on:
-            p0, q0 = pos_t, rot_t
-            p1, q1 = state_t1
-            rel = quat_to_matrix(quat_normalize(q1)) @ quat_to_matrix(quat_normalize(q0)).transpose(-1, -2)
-            terms["arap"] = w.arap * L.arap_loss(p0, p1, rel, m.graph_idx) / (m.extent ** 2)
-        if m.pos_keys is not None and (w.velocity > 0 or w.acceleration > 0) and self.cfg.motion == "spline":
-            vel, acc = L.spline_smoothness(m.pos_keys / m.extent, m.key_times)
-            terms["velocity"] = w.velocity * vel
-            terms["acceleration"] = w.acceleration * acc
+            arap = fused_arap if fused else L.arap_states
+            terms["arap"] = w.arap * arap(pos_t, rot_t, *state_t1, m.graph_idx) / (m.extent ** 2)
+        if fused and m.pos_keys is not None and (smooth_on or static_on):
+            st, vel, acc = fused_key_terms(m.pos_keys, m.rot_keys, m.key_times, *self._static_weights(), m.extent,
+                                           *self._static_reference())
+            smooth = (vel, acc)
+        else:
+            st = self._static_motion(pos_t, rot_t, state_t1) if static_on else None
+            smooth = L.spline_smoothness(m.pos_keys / m.extent, m.key_times) if smooth_on else None
+        if smooth_on:
+            terms["velocity"] = w.velocity * smooth[0]
+            terms["acceleration"] = w.acceleration * smooth[1]
         if static_on:
-            terms["static"] = w.static * self._static_motion(pos_t, rot_t, state_t1)
+            terms["static"] = w.static * st
         loss = sum(terms.values())
         with torch.no_grad():
             metrics = {k: float(v) for k, v in terms.items()}
@@ -512,23 +524,30 @@ class Trainer:
         measured relative to ``a`` times the node's initial keys (:attr:`static_ref`).
         """
         m = self.model
+        s, arm = self._static_weights()
+        if m.pos_keys is not None:
+            return L.static_motion_keys(m.pos_keys, m.rot_keys, s, arm, m.extent, *self._static_reference())
+        pos_1, rot_1 = state_t1
+        e = 0.5 * ((((pos_t - pos_1) / m.extent) ** 2).sum(-1) + ((rot_t - rot_1) ** 2).sum(-1) * arm)
+        return (s * e).sum()
+
+    def _static_weights(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The static-motion term's per-node weight ``(1 − fg)^power`` and rotation arm
+        ``(2ρ / extent)²``, both [N] constants."""
+        m = self.model
         s = (1.0 - m.node_fg).clamp(0, 1) ** self.cfg.loss.static_power
         arm = (2.0 * m.node_radii().detach() / m.extent) ** 2
-        if m.pos_keys is not None:
-            pk, q = m.pos_keys, quat_normalize(m.rot_keys)
-            a = self.cfg.loss.static_init
-            if self.static_ref is not None:
-                # motion beyond the initial trajectory: a node on a thin moving part that the
-                # prior half-calls static keeps the motion its tracks gave it
-                pk = pk - a * self.static_ref[0]
-                q = q - a * quat_normalize(self.static_ref[1])
-            pk = pk / m.extent
-            e = ((pk - pk.mean(1, keepdim=True)) ** 2).sum(-1).mean(1)
-            e = e + ((q - q.mean(1, keepdim=True)) ** 2).sum(-1).mean(1) * arm
-        else:
-            pos_1, rot_1 = state_t1
-            e = 0.5 * ((((pos_t - pos_1) / m.extent) ** 2).sum(-1) + ((rot_t - rot_1) ** 2).sum(-1) * arm)
-        return (s * e).sum()
+        return s, arm
+
+    def _static_reference(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """``(a · initial pos keys, a · normalised initial rot keys)`` with ``a =
+        loss.static_init``, or ``(None, None)``: motion beyond the initial trajectory, so a
+        node on a thin moving part that the prior half-calls static keeps the motion its
+        tracks gave it."""
+        if self.static_ref is None:
+            return None, None
+        a = self.cfg.loss.static_init
+        return a * self.static_ref[0], a * quat_normalize(self.static_ref[1])
 
     def _dynamic_score(self) -> torch.Tensor:
         """Per-Gaussian dynamic score [G] for the mask term (the colour pass's extra
