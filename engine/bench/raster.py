@@ -8,9 +8,11 @@ excluded from the timings. ``fwdbwd_ms`` includes SH-free colour input, projecti
 compositing and the full backward to means/quats/scales/opacities/colours.
 ``fwdbwd_min_ms`` is the best forward+backward wall time and ``fwdbwd_cpu_ms`` the median
 process CPU time (all threads) of one forward+backward: both help read figures taken on a
-shared machine. ``gauss_px_per_s`` = Gaussian-pixel evaluations in one forward (counted over the exact
-per-row spans the CPU kernel visits; for other backends the same count is used) divided by
-``fwd_ms``. Each row's worker runs with ``OMP_WAIT_POLICY=PASSIVE`` unless the caller set it,
+shared machine. ``gauss_px_per_s`` = Gaussian-pixel pairs with ``alpha >= 1/255`` (pixel
+centres inside each Gaussian's cut-off ellipse, before early stop: a count of the useful
+work that does not depend on the kernel; the same count for every backend) divided by
+``fwd_ms``. (Before 2026-11-23 17:00 UTC it counted the CPU kernel's row spans, each
+widened by a pixel per side for rounding: a few per cent more pairs.) Each row's worker runs with ``OMP_WAIT_POLICY=PASSIVE`` unless the caller set it,
 like ``python -m engine`` (recorded as ``omp_wait_policy``).
 
 Scene: N Gaussians uniformly in the view frustum at depth 2..6, random rotations, isotropic-ish
@@ -73,7 +75,8 @@ def make_scene(n: int, res: int, device="cpu", seed: int = 0):
 
 
 def count_evaluations(scene) -> int:
-    """Gaussian-pixel evaluations of one CPU forward (exact row spans, before early stop)."""
+    """Gaussian-pixel pairs with ``alpha >= 1/255`` (pixel centres inside the cut-off
+    ellipse ``sigma <= ln(255 o)``) over each Gaussian's tiles, before early stop."""
     from ..raster import cpu as C
     from ..raster import cpu_numba as KN
 
@@ -88,9 +91,11 @@ def count_evaluations(scene) -> int:
 
 
 def _count(off, data, idata, W, H, tiles_x):
+    import math
+
     from numba import njit
 
-    from ..raster.cpu_numba import R_X0, R_X1, R_Y0, R_Y1, TILE, _row_span
+    from ..raster.cpu_numba import R_OP, R_X0, R_X1, R_Y0, R_Y1, TILE
 
     @njit(cache=False)
     def count(off, data, idata, W, H, tiles_x):
@@ -99,11 +104,21 @@ def _count(off, data, idata, W, H, tiles_x):
             oy = (tile // tiles_x) * TILE
             ox = (tile % tiles_x) * TILE
             for k in range(off[tile], off[tile + 1]):
+                mx, my = data[k, 0], data[k, 1]
+                a, b, c = data[k, 2], data[k, 3], data[k, 4]
+                thr = math.log(max(255.0 * data[k, R_OP], 1.0))  # sigma <= thr <=> alpha >= 1/255
+                lo, hi = max(idata[k, R_X0], ox), min(idata[k, R_X1], ox + TILE, W)
                 for py in range(max(idata[k, R_Y0], oy), min(idata[k, R_Y1], oy + TILE, H)):
-                    dy = float(py) + 0.5 - data[k, 1]
-                    x0, x1 = _row_span(data[k, 2], data[k, 3], data[k, 4], data[k, 10], dy, data[k, 0],
-                                       max(idata[k, R_X0], ox), min(idata[k, R_X1], ox + TILE, W))
-                    total += x1 - x0
+                    dy = float(py) + 0.5 - my
+                    # pixel centres x + 0.5 of the row inside the ellipse sigma <= thr
+                    disc = b * b * dy * dy - a * (c * dy * dy - 2.0 * thr)
+                    if disc < 0:
+                        continue
+                    r = math.sqrt(disc) / a
+                    cen = mx - b * dy / a - 0.5
+                    x0 = max(lo, int(math.ceil(cen - r)))
+                    x1 = min(hi, int(math.floor(cen + r)) + 1)
+                    total += max(0, x1 - x0)
         return total
 
     return count(off, data, idata, W, H, tiles_x)

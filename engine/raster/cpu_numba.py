@@ -504,46 +504,27 @@ def bin_tiles(depths, means2d, conics, colors, opac, extents, radii, width, heig
     return offsets, inst_gid, data, idata, gstart
 
 
-@njit(inline="always", **_JIT)
-def _sigma_threshold(op):
-    """``ln(255 o)`` (at least 0): where ``sigma`` exceeds it, ``alpha < 1/255``."""
-    return math.log(max(F255 * op, F1))
-
-
-@njit(inline="always", **_JIT)
-def _row_span(a, b, c, thr, dy, mx, lo, hi):
-    """Pixel x range [x0, x1) on a row at offset ``dy`` where ``sigma <= thr`` may hold
-    (exact quadratic bound, widened by one pixel each side for rounding); clipped to
-    ``[lo, hi)``."""
-    disc = b * b * dy * dy - a * (c * dy * dy - F2 * thr)
-    if disc < F0:
-        return lo, lo
-    r = math.sqrt(disc) / a
-    cen = mx - b * dy / a - HALF
-    x0 = max(lo, int(math.floor(cen - r)) - 1)
-    x1 = min(hi, int(math.ceil(cen + r)) + 2)
-    if x1 < x0:
-        x1 = x0
-    return x0, x1
-
-
 # Per-tile state lives in ONE flat float32 array, one field per block of NPAD entries, and
 # the pixel loops index it with unsigned integers: one base pointer means LLVM needs no
 # runtime alias checks, and unsigned indices drop Numba's negative-index wraparound, so the
 # inner loops vectorise. The loops are branch-free (masks and selects) for the same reason.
 #
-# A row span is processed in 8-lane chunks that start at the span's first pixel (not at an
-# 8-aligned column): a span of <= 8 pixels is always one chunk. Lanes past the span fall on
-# the next tile row or on the 8 slack entries that end each field block; they are masked
-# (float compare against the span length, no 64-bit integer masks), and every masked write
-# stores back the value it read, so they change nothing.
+# An instance's pixel box within a tile (at most TILE = 16 wide) is processed one row at a
+# time as one 8-lane chunk (box <= 8 wide) or one 16-lane chunk, starting at the box's first
+# column (not at an aligned one). Lanes past the box fall on the next tile row or on the 16
+# slack entries that end each field block; they are masked (float compare against the box
+# width, no 64-bit integer masks), and every masked write stores back the value it read, so
+# they change nothing. Lanes inside the box but outside the Gaussian's alpha >= 1/255
+# ellipse are masked by the alpha test. (An exact per-row span with horizontal sums per
+# row, the earlier path for boxes wider than 8, cost ~40 % more at 240x180.)
 NPX = TILE * TILE
-NPAD = NPX + 8
+NPAD = NPX + 16
 _T, _R, _G, _B, _D, _LAST = (np.uint64(i * NPAD) for i in range(6))  # forward fields
 _BT, _BLAST, _BB, _GR, _GG, _GB, _GD, _GA = (np.uint64(i * NPAD) for i in range(8))  # backward fields
 U0 = np.uint64(0)
 U8 = np.uint64(8)
-LANE = np.arange(8).astype(np.float32)  # lane offsets 0..7 (a frozen constant in the kernels)
+U16 = np.uint64(16)
+LANE = np.arange(16).astype(np.float32)  # lane offsets 0..15 (a frozen constant in the kernels)
 # exp(y) on y in [-0.5, 0]: degree-5 least-squares fit on 200 Chebyshev nodes (float64
 # relative error 1.3e-8; as accurate in float32 as the degree-7 Taylor series it replaced,
 # two FMAs and two constants fewer per lane).
@@ -573,7 +554,7 @@ def _exp_neg(s):
     return e * e
 
 
-# raster_forward's per-lane stop counts of a narrow instance, run down its rows: _SP + p,
+# raster_forward's per-lane stop counts of an instance, run down its rows: _SP + p,
 # after TILE slack entries so that the row above (_SPM + p = _SP + p - TILE) stays inside.
 _SPM = np.uint64(6 * NPAD)
 _SP = np.uint64(6 * NPAD + TILE)
@@ -608,6 +589,35 @@ def _composite_lane(S, p, lj, dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_, e_, kk
     S[_T + p] = tt if take else (-tp if stop else tp)
     S[_LAST + p] = kk if take else S[_LAST + p]
     return F1 if stop else F0
+
+
+@njit(inline="always", **_JIT)
+def _composite_rows(S, nl, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_, e_, kk, xe):
+    """Composite one instance into the tile state ``S``: rows ``y0 <= py < y1``, one chunk of
+    ``nl`` lanes (8 or 16, a constant at each call site) per row starting at column ``bx0``,
+    lanes past ``bx1`` masked. The per-lane stop counts run down the rows (field _SP, the
+    row above at -TILE, as the running sums of :func:`raster_backward`) and are summed
+    horizontally once per instance instead of once per row. Returns the number of pixels
+    that stopped here."""
+    p0 = np.uint64((y0 - oy) * TILE - ox + bx0)
+    for j in range(U0, nl):
+        S[_SPM + p0 + j] = F0
+    n_in = np.float32(bx1 - bx0)
+    dx0 = np.float32(bx0) + HALF - mx
+    for py in range(y0, y1):
+        dy = np.float32(py) + HALF - my
+        cyy = HALF * c * dy * dy
+        bdy = b * dy
+        base = np.uint64((py - oy) * TILE - ox + bx0)
+        for j in range(U0, nl):
+            p = base + j
+            S[_SP + p] = _composite_lane(S, p, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_, e_, kk,
+                                         xe) + S[_SPM + p]
+    stops = F0
+    pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)
+    for j in range(U0, nl):
+        stops += S[_SP + pl + j]
+    return stops
 
 
 def _raster_forward_kernel(xe):
@@ -647,45 +657,15 @@ def _raster_forward_kernel(xe):
                 y1 = min(idata[k, R_Y1], oy + th)
                 bx0 = max(idata[k, R_X0], ox)
                 bx1 = min(idata[k, R_X1], ox + tw)
-                narrow = bx1 - bx0 <= 8
                 kk = np.float32(k - start + 1)
-                stops = F0
-                if narrow:
-                    # One 8-lane chunk per row at column bx0; the per-lane stop counts run down
-                    # the rows (field _SP, the row above at -TILE, as in raster_backward) and are
-                    # summed horizontally once per instance instead of once per row.
-                    p0 = np.uint64((y0 - oy) * TILE - ox + bx0)
-                    for j in range(U0, U8):
-                        S[_SPM + p0 + j] = F0
-                    n_in = np.float32(bx1 - bx0)
-                    dx0 = np.float32(bx0) + HALF - mx
-                    for py in range(y0, y1):
-                        dy = np.float32(py) + HALF - my
-                        cyy = HALF * c * dy * dy
-                        bdy = b * dy
-                        base = np.uint64((py - oy) * TILE - ox + bx0)
-                        for j in range(U0, U8):
-                            p = base + j
-                            S[_SP + p] = _composite_lane(S, p, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_,
-                                                         e_, kk, xe) + S[_SPM + p]
-                    pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)
-                    for j in range(U0, U8):
-                        stops += S[_SP + pl + j]
+                # a box at most 8 pixels wide in this tile takes one 8-lane chunk per row,
+                # a wider one (at most TILE) two; both are compiled with a constant width
+                if bx1 - bx0 <= 8:
+                    stops = _composite_rows(S, U8, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_,
+                                            e_, kk, xe)
                 else:
-                    thr = _sigma_threshold(op)
-                    for py in range(y0, y1):
-                        dy = np.float32(py) + HALF - my
-                        x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
-                        cyy = HALF * c * dy * dy
-                        bdy = b * dy
-                        row = (py - oy) * TILE - ox
-                        for c0 in range(x0, x1, 8):
-                            base = np.uint64(row + c0)
-                            n_in = np.float32(x1 - c0)
-                            dx0 = np.float32(c0) + HALF - mx
-                            for j in range(U0, U8):
-                                stops += _composite_lane(S, base + j, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_,
-                                                         b_, z_, e_, kk, xe)
+                    stops = _composite_rows(S, U16, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_,
+                                            e_, kk, xe)
                 alive -= stops
                 if alive <= F0:
                     break
@@ -745,7 +725,7 @@ def _unblend_lane(S, p, lj, dx, n_in, kk, a, cyy, bdy, op, r_, g_, b_, z_, e_, x
     return alv * tb, gr, gg, gb, gd, dal * gau
 
 
-# The backward's per-lane running sums down the rows of a narrow instance (see
+# The backward's per-lane running sums down the rows of an instance (see
 # raster_backward): field k at _RS + k * RSTRIDE + p, each block preceded by TILE slack
 # entries so that the row above (p - TILE) never leaves the array. _P* = _S* - TILE.
 RSTRIDE = NPAD + TILE
@@ -755,6 +735,80 @@ _RS = 8 * NPAD + TILE
 SLEN = _RS + 10 * RSTRIDE
 _GE = np.uint64(SLEN)  # the extra channel's upstream gradient (variant with an extra channel)
 SLEN_X = SLEN + NPAD
+
+
+@njit(inline="always", **_JIT)
+def _unblend_rows(S, nl, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_, e_, kk, xe):
+    """Back-to-front step of :func:`raster_backward` for one instance: rows ``y0 <= py < y1``,
+    one chunk of ``nl`` lanes (8 or 16, a constant at each call site) per row from column
+    ``bx0``, lanes past ``bx1`` masked. Per-lane running sums are carried down the rows in
+    ``S`` (row r stores its chunk plus row r-1's sums, an offset of -TILE from the same base,
+    so LLVM still sees one base pointer and vectorises): the horizontal reductions happen
+    once per instance instead of once per row. Returns the pixel sums
+    ``(Σ w g_r, Σ w g_g, Σ w g_b, Σ w g_z, Σ u, Σ u dx, Σ u dx², Σ u dy, Σ u dx dy, Σ u dy²)``
+    with ``w`` the blend weight and ``u = dL/dalpha · gau`` (see :func:`_unblend_lane`)."""
+    # the row above the first one starts the sums at zero
+    p0 = np.uint64((y0 - oy) * TILE - ox + bx0)
+    for j in range(U0, nl):
+        S[_PR + p0 + j] = F0
+        S[_PG + p0 + j] = F0
+        S[_PB + p0 + j] = F0
+        S[_PZ + p0 + j] = F0
+        S[_PU + p0 + j] = F0
+        S[_PX + p0 + j] = F0
+        S[_PXX + p0 + j] = F0
+        S[_PY + p0 + j] = F0
+        S[_PXY + p0 + j] = F0
+        S[_PYY + p0 + j] = F0
+    n_in = np.float32(bx1 - bx0)
+    dx0 = np.float32(bx0) + HALF - mx
+    for py in range(y0, y1):
+        dy = np.float32(py) + HALF - my
+        cyy = HALF * c * dy * dy
+        bdy = b * dy
+        dyy = dy * dy
+        base = np.uint64((py - oy) * TILE - ox + bx0)
+        for j in range(U0, nl):
+            p = base + j
+            dx = dx0 + LANE[j]
+            wgt, gr, gg, gb, gd, u = _unblend_lane(S, p, LANE[j], dx, n_in, kk, a, cyy, bdy, op, r_, g_, b_, z_,
+                                                   e_, xe)
+            ux = u * dx
+            S[_SR + p] = wgt * gr + S[_PR + p]
+            S[_SG + p] = wgt * gg + S[_PG + p]
+            S[_SB + p] = wgt * gb + S[_PB + p]
+            S[_SZ + p] = wgt * gd + S[_PZ + p]
+            S[_SU + p] = u + S[_PU + p]
+            S[_SX + p] = ux + S[_PX + p]
+            S[_SXX + p] = ux * dx + S[_PXX + p]
+            S[_SY + p] = u * dy + S[_PY + p]
+            S[_SXY + p] = ux * dy + S[_PXY + p]
+            S[_SYY + p] = u * dyy + S[_PYY + p]
+    s_r = F0
+    s_g = F0
+    s_bb = F0
+    s_z = F0
+    s_o = F0
+    t_x = F0
+    t_xx = F0
+    t_y = F0
+    t_xy = F0
+    t_yy = F0
+    if y1 > y0:  # always, for an instance binned to this tile
+        pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)  # the last row
+        for j in range(U0, nl):
+            p = pl + j
+            s_r += S[_SR + p]
+            s_g += S[_SG + p]
+            s_bb += S[_SB + p]
+            s_z += S[_SZ + p]
+            s_o += S[_SU + p]
+            t_x += S[_SX + p]
+            t_xx += S[_SXX + p]
+            t_y += S[_SY + p]
+            t_xy += S[_SXY + p]
+            t_yy += S[_SYY + p]
+    return s_r, s_g, s_bb, s_z, s_o, t_x, t_xx, t_y, t_xy, t_yy
 
 
 def _raster_backward_kernel(xe):
@@ -770,10 +824,9 @@ def _raster_backward_kernel(xe):
         ``g_extra [H,W]``) are upstream gradients; the extra channel itself gets none.
         Fills and returns ``grads``, the per-instance gradients ``[I, 10]``: (mx, my, a, b, c,
         opacity, r, g, b, z), each instance's row at its R_SLOT (Gaussian-major order, so the per-Gaussian sums read
-        contiguous rows). Instances whose pixel box in the tile is at most 8 wide (nearly all
-        at the benchmark sizes) carry per-lane sums down their rows; wider ones sum each row
-        (over its exact span) horizontally.
-        ``reassoc`` lets LLVM vectorise the per-Gaussian sums over pixels."""
+        contiguous rows). Every instance carries per-lane sums down its rows in 8 or 16
+        lanes (:func:`_unblend_rows`). ``reassoc`` lets LLVM vectorise the per-Gaussian sums
+        over pixels."""
         ntiles = offsets.shape[0] - 1
         for tile in prange(ntiles):
             tyi = tile // tiles_x
@@ -785,7 +838,7 @@ def _raster_backward_kernel(xe):
             # T, last, then B (what lies behind the current Gaussian per unit transmittance
             # after it, dotted with the upstream gradient; starts as g . background), then the
             # upstream gradients. Zeros elsewhere keep masked lanes inert (last = 0 masks them).
-            S = np.zeros(SLEN_X if xe else SLEN, np.float32)  # 8 fields, the 10 running sums (narrow path)
+            S = np.zeros(SLEN_X if xe else SLEN, np.float32)  # 8 fields, then the 10 running sums
             maxlast = 0
             for yy in range(th):
                 for xx in range(tw):
@@ -817,143 +870,24 @@ def _raster_backward_kernel(xe):
                 y1 = min(idata[k, R_Y1], oy + th)
                 bx0 = max(idata[k, R_X0], ox)
                 bx1 = min(idata[k, R_X1], ox + tw)
-                narrow = bx1 - bx0 <= 8
                 kk = np.float32(k - start)
-                if narrow:
-                    # One 8-lane chunk per row, all at column bx0. Per-lane running sums are
-                    # carried down the rows in S (row r stores its chunk plus row r-1's sums, an
-                    # offset of -TILE from the same base, so LLVM still sees one base pointer
-                    # and vectorises): the horizontal reductions happen once per instance
-                    # instead of once per row (~30% less raster-backward time at these sizes).
-                    # The row above the first one starts the sums at zero.
-                    p0 = np.uint64((y0 - oy) * TILE - ox + bx0)
-                    for j in range(U0, U8):
-                        S[_PR + p0 + j] = F0
-                        S[_PG + p0 + j] = F0
-                        S[_PB + p0 + j] = F0
-                        S[_PZ + p0 + j] = F0
-                        S[_PU + p0 + j] = F0
-                        S[_PX + p0 + j] = F0
-                        S[_PXX + p0 + j] = F0
-                        S[_PY + p0 + j] = F0
-                        S[_PXY + p0 + j] = F0
-                        S[_PYY + p0 + j] = F0
-                    n_in = np.float32(bx1 - bx0)
-                    dx0 = np.float32(bx0) + HALF - mx
-                    for py in range(y0, y1):
-                        dy = np.float32(py) + HALF - my
-                        cyy = HALF * c * dy * dy
-                        bdy = b * dy
-                        dyy = dy * dy
-                        base = np.uint64((py - oy) * TILE - ox + bx0)
-                        for j in range(U0, U8):
-                            p = base + j
-                            dx = dx0 + LANE[j]
-                            wgt, gr, gg, gb, gd, u = _unblend_lane(S, p, LANE[j], dx, n_in, kk, a, cyy, bdy, op,
-                                                                   r_, g_, b_, z_, e_, xe)
-                            ux = u * dx
-                            S[_SR + p] = wgt * gr + S[_PR + p]
-                            S[_SG + p] = wgt * gg + S[_PG + p]
-                            S[_SB + p] = wgt * gb + S[_PB + p]
-                            S[_SZ + p] = wgt * gd + S[_PZ + p]
-                            S[_SU + p] = u + S[_PU + p]
-                            S[_SX + p] = ux + S[_PX + p]
-                            S[_SXX + p] = ux * dx + S[_PXX + p]
-                            S[_SY + p] = u * dy + S[_PY + p]
-                            S[_SXY + p] = ux * dy + S[_PXY + p]
-                            S[_SYY + p] = u * dyy + S[_PYY + p]
-                    s_r = F0
-                    s_g = F0
-                    s_bb = F0
-                    s_z = F0
-                    s_o = F0
-                    t_x = F0
-                    t_xx = F0
-                    t_y = F0
-                    t_xy = F0
-                    t_yy = F0
-                    if y1 > y0:  # always, for an instance binned to this tile
-                        pl = np.uint64((y1 - 1 - oy) * TILE - ox + bx0)  # the last row
-                        for j in range(U0, U8):
-                            p = pl + j
-                            s_r += S[_SR + p]
-                            s_g += S[_SG + p]
-                            s_bb += S[_SB + p]
-                            s_z += S[_SZ + p]
-                            s_o += S[_SU + p]
-                            t_x += S[_SX + p]
-                            t_xx += S[_SXX + p]
-                            t_y += S[_SY + p]
-                            t_xy += S[_SXY + p]
-                            t_yy += S[_SYY + p]
-                    # the row sums of the wide path below, summed over rows: sum_rows (a q1 + b dy q0)
-                    # = a t_x + b t_y and so on
-                    s_mx = a * t_x + b * t_y
-                    s_my = b * t_x + c * t_y
-                    s_a = -t_xx
-                    s_b = -t_xy
-                    s_c = -t_yy
-                    opq = op * HALF
-                    s_mx *= op
-                    s_my *= op
-                    s_a *= opq
-                    s_b *= op
-                    s_c *= opq
+                # one 8-lane chunk per row for a box at most 8 wide, two for a wider one (at
+                # most TILE): constant widths, compiled separately
+                if bx1 - bx0 <= 8:
+                    s_r, s_g, s_bb, s_z, s_o, t_x, t_xx, t_y, t_xy, t_yy = _unblend_rows(
+                        S, U8, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_, e_, kk, xe)
                 else:
-                    s_mx = F0
-                    s_my = F0
-                    s_a = F0
-                    s_b = F0
-                    s_c = F0
-                    s_o = F0
-                    s_r = F0
-                    s_g = F0
-                    s_bb = F0
-                    s_z = F0
-                    thr = _sigma_threshold(op)
-                    for py in range(y0, y1):
-                        dy = np.float32(py) + HALF - my
-                        x0, x1 = _row_span(a, b, c, thr, dy, mx, bx0, bx1)
-                        cyy = HALF * c * dy * dy
-                        bdy = b * dy
-                        row = (py - oy) * TILE - ox
-                        # dy is constant along the row, so the opacity, conic and mean gradients
-                        # only need three sums over the row's pixels (u, u dx, u dx^2, see below):
-                        # fewer per-lane products and horizontal reductions per chunk.
-                        q0 = F0
-                        q1 = F0
-                        q2 = F0
-                        for c0 in range(x0, x1, 8):
-                            base = np.uint64(row + c0)
-                            n_in = np.float32(x1 - c0)
-                            dx0 = np.float32(c0) + HALF - mx
-                            for j in range(U0, U8):
-                                p = base + j
-                                dx = dx0 + LANE[j]
-                                wgt, gr, gg, gb, gd, u = _unblend_lane(S, p, LANE[j], dx, n_in, kk, a, cyy, bdy,
-                                                                       op, r_, g_, b_, z_, e_, xe)
-                                s_r += wgt * gr
-                                s_g += wgt * gg
-                                s_bb += wgt * gb
-                                s_z += wgt * gd
-                                ux = u * dx
-                                q0 += u
-                                q1 += ux
-                                q2 += ux * dx
-                        # d sigma / d(mx, my, a, b, c) = (-(a dx + b dy), -(b dx + c dy), dx^2/2, dx dy, dy^2/2),
-                        # times dL/dsigma = -op u; the factor op (and 1/2) is applied once per instance
-                        s_o += q0
-                        s_mx += a * q1 + bdy * q0
-                        s_my += b * q1 + c * dy * q0
-                        s_a -= q2
-                        s_b -= dy * q1
-                        s_c -= dy * dy * q0
-                    opq = op * HALF
-                    s_mx *= op
-                    s_my *= op
-                    s_a *= opq
-                    s_b *= op
-                    s_c *= opq
+                    s_r, s_g, s_bb, s_z, s_o, t_x, t_xx, t_y, t_xy, t_yy = _unblend_rows(
+                        S, U16, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_, e_, kk, xe)
+                # d sigma / d(mx, my, a, b, c) = (-(a dx + b dy), -(b dx + c dy), dx^2/2, dx dy, dy^2/2)
+                # times dL/dsigma = -op u, summed over the pixels: a t_x + b t_y and so on; the
+                # factor op (and 1/2) is applied once per instance
+                opq = op * HALF
+                s_mx = (a * t_x + b * t_y) * op
+                s_my = (b * t_x + c * t_y) * op
+                s_a = -t_xx * opq
+                s_b = -t_xy * op
+                s_c = -t_yy * opq
                 slot = idata[k, R_SLOT]
                 grads[slot, 0] = s_mx
                 grads[slot, 1] = s_my
