@@ -262,35 +262,44 @@ def fused_available(*tensors: torch.Tensor) -> bool:
     return all(t.device.type == "cpu" and (not t.is_floating_point() or t.dtype == torch.float32) for t in tensors)
 
 
+KNN_CHUNK = 256  # points per task of _knn (each task owns one score buffer)
+
+
 @njit(parallel=True, **_JIT)
-def _knn(points, nodes_c, nodes_sq, origin, k, out):
+def _knn(points, cx, cy, cz, nodes_sq, origin, k, out):
     """``out [G, k]``: the ``k`` nodes with the smallest ``|c|² − 2 p·c`` per point (centred
     coordinates, the ranking of :func:`engine.geometry.binding.knn_nodes`), nearest first,
-    ties to the lower node index. One pass over the nodes per point with a sorted
-    ``k``-slot buffer: no ``[G, N]`` score matrix and no top-k over it."""
+    ties to the lower node index. Per point, the scores of all nodes go into a buffer in one
+    vectorised pass (node coordinates ``cx, cy, cz [N]`` as separate arrays), then one scan
+    keeps a sorted ``k``-slot list: no ``[G, N]`` score matrix and no top-k over it."""
     G = points.shape[0]
-    N = nodes_c.shape[0]
-    for g in prange(G):
-        px = points[g, 0] - origin[0]
-        py = points[g, 1] - origin[1]
-        pz = points[g, 2] - origin[2]
+    N = cx.shape[0]
+    for ch in prange((G + KNN_CHUNK - 1) // KNN_CHUNK):
+        score = np.empty(N, np.float32)
         best = np.empty(k, np.float32)
         bidx = np.empty(k, np.int64)
-        for m in range(k):
-            best[m] = np.inf
-            bidx[m] = 0
-        for j in range(N):
-            s = nodes_sq[j] - np.float32(2.0) * (px * nodes_c[j, 0] + py * nodes_c[j, 1] + pz * nodes_c[j, 2])
-            if s < best[k - 1]:
-                m = k - 1
-                while m > 0 and s < best[m - 1]:
-                    best[m] = best[m - 1]
-                    bidx[m] = bidx[m - 1]
-                    m -= 1
-                best[m] = s
-                bidx[m] = j
-        for m in range(k):
-            out[g, m] = bidx[m]
+        for g in range(ch * KNN_CHUNK, min(G, (ch + 1) * KNN_CHUNK)):
+            px = points[g, 0] - origin[0]
+            py = points[g, 1] - origin[1]
+            pz = points[g, 2] - origin[2]
+            two = np.float32(2.0)
+            for j in range(N):
+                score[j] = nodes_sq[j] - two * (px * cx[j] + py * cy[j] + pz * cz[j])
+            for m in range(k):
+                best[m] = np.inf
+                bidx[m] = 0
+            for j in range(N):
+                s = score[j]
+                if s < best[k - 1]:
+                    m = k - 1
+                    while m > 0 and s < best[m - 1]:
+                        best[m] = best[m - 1]
+                        bidx[m] = bidx[m - 1]
+                        m -= 1
+                    best[m] = s
+                    bidx[m] = j
+            for m in range(k):
+                out[g, m] = bidx[m]
 
 
 def fused_knn(points: torch.Tensor, nodes: torch.Tensor, k: int) -> torch.Tensor:
@@ -301,6 +310,8 @@ def fused_knn(points: torch.Tensor, nodes: torch.Tensor, k: int) -> torch.Tensor
     nodes_c = nodes - origin
     nodes_sq = (nodes_c * nodes_c).sum(-1)
     out = np.empty((points.shape[0], k), np.int64)
+    c = _f32(nodes_c)
     with kernel_threads():
-        _knn(_f32(points), _f32(nodes_c), _f32(nodes_sq), _f32(origin), int(k), out)
+        _knn(_f32(points), np.ascontiguousarray(c[:, 0]), np.ascontiguousarray(c[:, 1]),
+             np.ascontiguousarray(c[:, 2]), _f32(nodes_sq), _f32(origin), int(k), out)
     return torch.from_numpy(out)

@@ -324,8 +324,9 @@ class _FusedKeyTerms(torch.autograd.Function):
         with kernel_threads():
             st, vel, acc = _key_terms(_np32(pos_keys), _np32(rot_keys), _np32(key_times),
                                       _np32(s).astype(np.float64), _np32(arm).astype(np.float64),
-                                      empty if ref_p is None else _np32(ref_p), empty if ref_q is None else _np32(ref_q),
-                                      float(inv_ext), g_st_p, g_st_q, g_vel, g_acc, np.empty((N, 3)))
+                                      empty if ref_p is None else _np32(ref_p),
+                                      empty if ref_q is None else _np32(ref_q), float(inv_ext), g_st_p, g_st_q, g_vel,
+                                      g_acc, np.empty((N, 3)))
         ctx.grads = (g_st_p, g_st_q, g_vel, g_acc)
         ctx.dtypes = (pos_keys.dtype, rot_keys.dtype)
         return pos_keys.new_tensor(st), pos_keys.new_tensor(vel), pos_keys.new_tensor(acc)

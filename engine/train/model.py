@@ -282,6 +282,25 @@ class DynamicScene(nn.Module):
         rot = hermite_eval_quat(self.key_times, self.rot_keys, rot_tan, tt, tangents_in=rot_in)[:, 0]
         return pos, rot
 
+    def node_states(self, times, nodes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Positions ``[S, T, 3]`` and unit quaternions ``[S, T, 4]`` of the nodes ``nodes [S]``
+        (default all) at each of ``times`` (T floats): :meth:`node_state` at every time, in
+        one basis-matrix product for Catmull-Rom splines (the same weights as
+        :meth:`spline_basis`), else time by time."""
+        times = [float(t) for t in times]
+        sel = (lambda x: x) if nodes is None else (lambda x: x[nodes])  # noqa: E731
+        if self.mlp is None and getattr(self, "explicit_tangents", None) is None and times:
+            kt = self.key_times.detach().cpu().double().numpy()
+            basis = torch.from_numpy(np.stack([_catmull_rom_basis(kt, t) for t in times])).to(self.pos_keys)
+            pos = torch.einsum("tk,nkc->ntc", basis, sel(self.pos_keys))
+            return pos, quat_normalize(torch.einsum("tk,nkc->ntc", basis, sel(self.rot_keys)))
+        states = [self.node_state(t) for t in times]
+        if not states:
+            n = self.num_nodes if nodes is None else len(nodes)
+            return self.node_centers.new_zeros(n, 0, 3), self.node_centers.new_zeros(n, 0, 4)
+        pos = torch.stack([sel(p) for p, _ in states], 1)
+        return pos, torch.stack([quat_normalize(sel(q)) for _, q in states], 1)
+
     def gaussian_transforms(self, t: float, bind_idx=None, bind_w=None) -> torch.Tensor:
         """Blended unit dual quaternions [G, 8] moving canonical Gaussians to time ``t``."""
         pos, rot = self.node_state(t)

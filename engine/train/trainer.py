@@ -217,20 +217,20 @@ def trajectory_fg_score(data: TrainingData, pos: torch.Tensor, fallback: torch.T
     little inside an object), so a static point that a moving object passes in front of
     stays static. Points never in view get ``fallback [N]``. Requires ``data.fg``.
     """
-    n, h, w = pos.shape[0], data.height, data.width
+    h, w = data.height, data.width
     dev = pos.device
-    acc = torch.zeros(n, device=dev)
-    cnt = torch.zeros(n, device=dev)
-    for j, f in enumerate(data.train_idx.tolist()):  # frames, not nodes: T small projections
-        uv, z = project(data.K[f], data.w2c[f], pos[:, j])
-        px, py = uv[:, 0].floor().long(), uv[:, 1].floor().long()
-        ok = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
-        px, py = px.clamp(0, w - 1), py.clamp(0, h - 1)
-        if data.depth is not None:
-            dz = data.depth[f, py, px]
-            ok &= (dz <= 0) | (z <= dz * (1 + occlusion_tol))
-        acc += torch.where(ok, data.fg[f, py, px], 0.0)
-        cnt += ok
+    idx = data.train_idx.to(dev)
+    # every (point, frame) pair at once: the cameras broadcast over the points
+    uv, z = project(data.K[idx][None], data.w2c[idx][None], pos)  # [N, T, 2], [N, T]
+    px, py = uv[..., 0].floor().long(), uv[..., 1].floor().long()
+    ok = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+    px, py = px.clamp(0, w - 1), py.clamp(0, h - 1)
+    ff = idx[None].expand_as(px)
+    if data.depth is not None:
+        dz = data.depth[ff, py, px]
+        ok &= (dz <= 0) | (z <= dz * (1 + occlusion_tol))
+    acc = torch.where(ok, data.fg[ff, py, px], 0.0).sum(1)
+    cnt = ok.sum(1).to(acc.dtype)
     return torch.where(cnt > 0, acc / cnt.clamp_min(1), fallback.to(dev)).clamp(0, 1)
 
 
@@ -684,12 +684,9 @@ class Trainer:
         follow = torch.ones(len(par), dtype=torch.bool, device=new_c.device)
         if d.fg is None or not len(par):
             return follow, m.node_fg[par]
-        frames = d.train_idx.tolist()
-        follow_pos = []
-        for f in frames:  # T evaluations of the node state, not a loop over nodes
-            p, q = m.node_state(float(d.times[f]))
-            follow_pos.append(p[par] + quat_apply(quat_normalize(q[par]), new_c - m.node_centers[par]))
-        follow_pos = torch.stack(follow_pos, 1)  # [S, T, 3] (densification runs under no_grad)
+        p, q = m.node_states(d.times[d.train_idx].tolist(), par)  # [S, T, 3], [S, T, 4]
+        offset = (new_c - m.node_centers[par]).unsqueeze(1).expand(-1, p.shape[1], -1)
+        follow_pos = p + quat_apply(q, offset)  # [S, T, 3] (densification runs under no_grad)
         fallback = m.node_fg[par]
         fg_follow = trajectory_fg_score(d, follow_pos, fallback)
         fg_static = trajectory_fg_score(d, new_c.unsqueeze(1).expand_as(follow_pos), fallback)

@@ -144,6 +144,56 @@ def test_node_fg_score_follows_the_prior_along_the_initial_trajectory(tmp_path, 
     assert float(m.node_fg[20:].min()) > 0.5
 
 
+@pytest.mark.parametrize("motion", ["spline", "mlp"])
+def test_node_states_match_node_state_at_each_time(tmp_path, scene, motion):
+    data, truth = scene
+    m = Trainer(data, make_nodes(truth), _cfg(motion=motion), tmp_path / motion).model
+    if motion == "spline":
+        with torch.no_grad():
+            m.rot_keys.add_(0.2 * torch.randn(m.rot_keys.shape, generator=torch.Generator().manual_seed(0)))
+    times = [0.0, 0.13, 0.5, 0.77, 1.0, 1.2]
+    sel = torch.tensor([3, 0, 21, 7])
+    pos, rot = m.node_states(times, sel)
+    assert pos.shape == (4, len(times), 3) and rot.shape == (4, len(times), 4)
+    for j, t in enumerate(times):
+        p, q = m.node_state(t)
+        assert torch.allclose(pos[:, j], p[sel], atol=1e-6)
+        assert torch.allclose(rot[:, j], q[sel], atol=1e-6)
+    assert m.node_states([], sel)[0].shape == (4, 0, 3)
+
+
+def test_trajectory_fg_score_reads_the_prior_frame_by_frame(tmp_path, scene):
+    """The all-frames-at-once score equals reading the prior frame by frame (projection,
+    in-view test, occlusion test against the prior depth, fallback when never seen)."""
+    from engine.geometry.camera import project
+    from engine.train.trainer import trajectory_fg_score
+
+    data, truth = scene
+    g = torch.Generator().manual_seed(1)
+    T = len(data.train_idx)
+    pos = torch.randn(30, 1, 3, generator=g) * 0.8 + torch.tensor([0.0, 1.5, 0.0])
+    pos = pos + torch.linspace(-0.5, 0.5, T)[None, :, None] * torch.tensor([1.0, 0.0, 0.2])
+    pos[0] = torch.tensor([0.0, -50.0, 0.0])  # behind every camera: the fallback
+    pos[1] = pos[1] - torch.tensor([0.0, 0.6, 0.0])  # in front of the wall, not occluded
+    pos[2] = pos[2] + torch.tensor([0.0, 3.0, 0.0])  # far behind the wall: occluded everywhere
+    fallback = torch.rand(30, generator=g)
+    got = trajectory_fg_score(data, pos, fallback)
+    acc, cnt = torch.zeros(30), torch.zeros(30)
+    for j, f in enumerate(data.train_idx.tolist()):
+        uv, z = project(data.K[f], data.w2c[f], pos[:, j])
+        px, py = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        ok = (z > 0) & (px >= 0) & (px < data.width) & (py >= 0) & (py < data.height)
+        px, py = px.clamp(0, data.width - 1), py.clamp(0, data.height - 1)
+        dz = data.depth[f, py, px]
+        ok &= (dz <= 0) | (z <= dz * 1.2)
+        acc += torch.where(ok, data.fg[f, py, px], 0.0)
+        cnt += ok
+    want = torch.where(cnt > 0, acc / cnt.clamp_min(1), fallback).clamp(0, 1)
+    assert torch.allclose(got, want, atol=1e-6)
+    assert float(got[0]) == pytest.approx(float(fallback[0])) and float(got[2]) == pytest.approx(float(fallback[2]))
+    assert cnt[1] > 0 and cnt[3:].sum() > 0
+
+
 def test_static_motion_term_pulls_only_static_nodes_and_spares_constant_offsets(tmp_path, scene):
     data, truth = scene
     trainer = Trainer(data, make_nodes(truth), _cfg(loss={"static": 1.0}), tmp_path / "st")
