@@ -592,6 +592,35 @@ def _composite_lane(S, p, lj, dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_, e_, kk
 
 
 @njit(inline="always", **_JIT)
+def _tile_box(tile, tiles_x, width, height):
+    """Pixel origin ``(ox, oy)`` and size ``(tw, th)`` of tile ``tile`` (row-major tiles)."""
+    tyi = tile // tiles_x
+    ox = (tile - tyi * tiles_x) * TILE
+    oy = tyi * TILE
+    return ox, oy, min(TILE, width - ox), min(TILE, height - oy)
+
+
+@njit(inline="always", **_JIT)
+def _row(py, oy, ox, bx0, my, b, c):
+    """Per-row terms of pixel row ``py`` for an instance at ``my`` with conic ``(a, b, c)``:
+    ``dy``, ``c dy² / 2``, ``b dy`` and the state index of the row's first lane (column
+    ``bx0`` of the tile at ``(ox, oy)``)."""
+    dy = np.float32(py) + HALF - my
+    return dy, HALF * c * dy * dy, b * dy, np.uint64((py - oy) * TILE - ox + bx0)
+
+
+@njit(inline="always", **_JIT)
+def _instance(data, idata, k, ox, oy, tw, th):
+    """Record ``k`` of a tile list: ``(mx, my, a, b, c, opacity, r, g, b, z, extra)`` and its
+    pixel box clipped to the tile at ``(ox, oy)`` of size ``tw x th``: ``y0, y1, bx0, bx1``
+    (ends exclusive)."""
+    return (data[k, R_MX], data[k, R_MY], data[k, R_A], data[k, R_B], data[k, R_C], data[k, R_OP],
+            data[k, R_R], data[k, R_G], data[k, R_BL], data[k, R_Z], data[k, R_E],
+            max(idata[k, R_Y0], oy), min(idata[k, R_Y1], oy + th), max(idata[k, R_X0], ox),
+            min(idata[k, R_X1], ox + tw))
+
+
+@njit(inline="always", **_JIT)
 def _composite_rows(S, nl, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_, e_, kk, xe):
     """Composite one instance into the tile state ``S``: rows ``y0 <= py < y1``, one chunk of
     ``nl`` lanes (8 or 16, a constant at each call site) per row starting at column ``bx0``,
@@ -605,10 +634,7 @@ def _composite_rows(S, nl, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_
     n_in = np.float32(bx1 - bx0)
     dx0 = np.float32(bx0) + HALF - mx
     for py in range(y0, y1):
-        dy = np.float32(py) + HALF - my
-        cyy = HALF * c * dy * dy
-        bdy = b * dy
-        base = np.uint64((py - oy) * TILE - ox + bx0)
+        dy, cyy, bdy, base = _row(py, oy, ox, bx0, my, b, c)
         for j in range(U0, nl):
             p = base + j
             S[_SP + p] = _composite_lane(S, p, LANE[j], dx0, n_in, a, cyy, bdy, op, r_, g_, b_, z_, e_, kk,
@@ -636,27 +662,15 @@ def _raster_forward_kernel(xe):
         ``xe`` out_extra [H,W] (sum w e, field R_E; no background)."""
         ntiles = offsets.shape[0] - 1
         for tile in prange(ntiles):
-            tyi = tile // tiles_x
-            txi = tile - tyi * tiles_x
-            ox = txi * TILE
-            oy = tyi * TILE
+            ox, oy, tw, th = _tile_box(tile, tiles_x, width, height)
             # A finished pixel keeps its transmittance negated (-T > 0 can never composite
             # again), so no separate "done" field is loaded and stored per lane.
             S = np.zeros(FWD_SLEN_X if xe else FWD_SLEN, np.float32)
             S[:NPAD] = F1
-            tw = min(TILE, width - ox)
-            th = min(TILE, height - oy)
             alive = np.float32(tw * th)
             start = offsets[tile]
             for k in range(start, offsets[tile + 1]):
-                mx, my = data[k, R_MX], data[k, R_MY]
-                a, b, c = data[k, R_A], data[k, R_B], data[k, R_C]
-                op = data[k, R_OP]
-                r_, g_, b_, z_, e_ = data[k, R_R], data[k, R_G], data[k, R_BL], data[k, R_Z], data[k, R_E]
-                y0 = max(idata[k, R_Y0], oy)
-                y1 = min(idata[k, R_Y1], oy + th)
-                bx0 = max(idata[k, R_X0], ox)
-                bx1 = min(idata[k, R_X1], ox + tw)
+                mx, my, a, b, c, op, r_, g_, b_, z_, e_, y0, y1, bx0, bx1 = _instance(data, idata, k, ox, oy, tw, th)
                 kk = np.float32(k - start + 1)
                 # a box at most 8 pixels wide in this tile takes one 8-lane chunk per row,
                 # a wider one (at most TILE) two; both are compiled with a constant width
@@ -763,11 +777,8 @@ def _unblend_rows(S, nl, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, 
     n_in = np.float32(bx1 - bx0)
     dx0 = np.float32(bx0) + HALF - mx
     for py in range(y0, y1):
-        dy = np.float32(py) + HALF - my
-        cyy = HALF * c * dy * dy
-        bdy = b * dy
+        dy, cyy, bdy, base = _row(py, oy, ox, bx0, my, b, c)
         dyy = dy * dy
-        base = np.uint64((py - oy) * TILE - ox + bx0)
         for j in range(U0, nl):
             p = base + j
             dx = dx0 + LANE[j]
@@ -829,12 +840,7 @@ def _raster_backward_kernel(xe):
         over pixels."""
         ntiles = offsets.shape[0] - 1
         for tile in prange(ntiles):
-            tyi = tile // tiles_x
-            txi = tile - tyi * tiles_x
-            ox = txi * TILE
-            oy = tyi * TILE
-            tw = min(TILE, width - ox)
-            th = min(TILE, height - oy)
+            ox, oy, tw, th = _tile_box(tile, tiles_x, width, height)
             # T, last, then B (what lies behind the current Gaussian per unit transmittance
             # after it, dotted with the upstream gradient; starts as g . background), then the
             # upstream gradients. Zeros elsewhere keep masked lanes inert (last = 0 masks them).
@@ -862,14 +868,7 @@ def _raster_backward_kernel(xe):
                 for f in range(10):
                     grads[idata[k, R_SLOT], f] = F0
             for k in range(start + maxlast - 1, start - 1, -1):
-                mx, my = data[k, R_MX], data[k, R_MY]
-                a, b, c = data[k, R_A], data[k, R_B], data[k, R_C]
-                op = data[k, R_OP]
-                r_, g_, b_, z_, e_ = data[k, R_R], data[k, R_G], data[k, R_BL], data[k, R_Z], data[k, R_E]
-                y0 = max(idata[k, R_Y0], oy)
-                y1 = min(idata[k, R_Y1], oy + th)
-                bx0 = max(idata[k, R_X0], ox)
-                bx1 = min(idata[k, R_X1], ox + tw)
+                mx, my, a, b, c, op, r_, g_, b_, z_, e_, y0, y1, bx0, bx1 = _instance(data, idata, k, ox, oy, tw, th)
                 kk = np.float32(k - start)
                 # one 8-lane chunk per row for a box at most 8 wide, two for a wider one (at
                 # most TILE): constant widths, compiled separately

@@ -79,6 +79,17 @@ def _rot_backward(w, x, y, z, n, G, gq, i):
         gq[i, 3] += (gz - z * dot) / n
 
 
+@njit(inline="always", **_JIT)
+def _edge_grad(g, i, j, x, y, z):
+    """An edge ``e = p_j − p_i`` with gradient ``(x, y, z)``: add it to ``g[j]``, subtract from ``g[i]``."""
+    g[j, 0] += x
+    g[j, 1] += y
+    g[j, 2] += z
+    g[i, 0] -= x
+    g[i, 1] -= y
+    g[i, 2] -= z
+
+
 @njit(**_JIT)
 def _arap(p0, q0, p1, q1, gidx, g_p0, g_q0, g_p1, g_q1):
     """ARAP value (mean over the ``N·k`` edges) with its gradients written to the float64
@@ -117,22 +128,12 @@ def _arap(p0, q0, p1, q1, gidx, g_p0, g_q0, g_p1, g_q1):
             dz = float(p1[j, 2]) - float(p1[i, 2]) - (R[2, 0] * e0x + R[2, 1] * e0y + R[2, 2] * e0z)
             total += dx * dx + dy * dy + dz * dz
             gx, gy, gz = 2 * c * dx, 2 * c * dy, 2 * c * dz  # ∂/∂e1 = ∂/∂d; ∂/∂r = −that
-            g_p1[j, 0] += gx
-            g_p1[j, 1] += gy
-            g_p1[j, 2] += gz
-            g_p1[i, 0] -= gx
-            g_p1[i, 1] -= gy
-            g_p1[i, 2] -= gz
+            _edge_grad(g_p1, i, j, gx, gy, gz)
             # ∂/∂e0 = Rᵀ ∂/∂r = −Rᵀ g
             ex = -(R[0, 0] * gx + R[1, 0] * gy + R[2, 0] * gz)
             ey = -(R[0, 1] * gx + R[1, 1] * gy + R[2, 1] * gz)
             ez = -(R[0, 2] * gx + R[1, 2] * gy + R[2, 2] * gz)
-            g_p0[j, 0] += ex
-            g_p0[j, 1] += ey
-            g_p0[j, 2] += ez
-            g_p0[i, 0] -= ex
-            g_p0[i, 1] -= ey
-            g_p0[i, 2] -= ez
+            _edge_grad(g_p0, i, j, ex, ey, ez)
             # ∂/∂R += (∂/∂r) e0ᵀ
             G[0, 0] -= gx * e0x
             G[0, 1] -= gx * e0y
@@ -151,6 +152,24 @@ def _arap(p0, q0, p1, q1, gidx, g_p0, g_q0, g_p1, g_q1):
         _rot_backward(w1, x1, y1, z1, n1, GA, g_q1, i)
         _rot_backward(w0, x0, y0, z0, n0, GB, g_q0, i)
     return total * c
+
+
+@njit(inline="always", **_JIT)
+def _minus(ref, i, kk, w, a, b, c):
+    """``(w, a, b, c) − ref[i, kk]`` (a 4-vector, in float64)."""
+    return (w - float(ref[i, kk, 0]), a - float(ref[i, kk, 1]), b - float(ref[i, kk, 2]),
+            c - float(ref[i, kk, 3]))
+
+
+@njit(inline="always", **_JIT)
+def _pos_key(pk, ref_p, has_ref, i, kk):
+    """Position key ``pk[i, kk]`` minus the reference when there is one (float64)."""
+    x0, x1, x2 = float(pk[i, kk, 0]), float(pk[i, kk, 1]), float(pk[i, kk, 2])
+    if has_ref:
+        x0 -= float(ref_p[i, kk, 0])
+        x1 -= float(ref_p[i, kk, 1])
+        x2 -= float(ref_p[i, kk, 2])
+    return x0, x1, x2
 
 
 @njit(parallel=True, **_JIT)
@@ -199,19 +218,12 @@ def _key_terms(pk, rk, kt, s, arm, ref_p, ref_q, inv_ext, g_st_p, g_st_q, g_vel,
                 w, a, b, c = 1.0, 0.0, 0.0, 0.0
             g_st_q[i, kk, 0], g_st_q[i, kk, 1], g_st_q[i, kk, 2], g_st_q[i, kk, 3] = w, a, b, c
             if has_ref:
-                w -= float(ref_q[i, kk, 0])
-                a -= float(ref_q[i, kk, 1])
-                b -= float(ref_q[i, kk, 2])
-                c -= float(ref_q[i, kk, 3])
+                w, a, b, c = _minus(ref_q, i, kk, w, a, b, c)
             mq0 += w
             mq1 += a
             mq2 += b
             mq3 += c
-            x0, x1, x2 = float(pk[i, kk, 0]), float(pk[i, kk, 1]), float(pk[i, kk, 2])
-            if has_ref:
-                x0 -= float(ref_p[i, kk, 0])
-                x1 -= float(ref_p[i, kk, 1])
-                x2 -= float(ref_p[i, kk, 2])
+            x0, x1, x2 = _pos_key(pk, ref_p, has_ref, i, kk)
             mp0 += x0
             mp1 += x1
             mp2 += x2
@@ -224,11 +236,7 @@ def _key_terms(pk, rk, kt, s, arm, ref_p, ref_q, inv_ext, g_st_p, g_st_q, g_vel,
         ep = 0.0
         eq = 0.0
         for kk in range(K):
-            x0, x1, x2 = float(pk[i, kk, 0]), float(pk[i, kk, 1]), float(pk[i, kk, 2])
-            if has_ref:
-                x0 -= float(ref_p[i, kk, 0])
-                x1 -= float(ref_p[i, kk, 1])
-                x2 -= float(ref_p[i, kk, 2])
+            x0, x1, x2 = _pos_key(pk, ref_p, has_ref, i, kk)
             d0, d1, d2 = (x0 - mp0) * inv_ext, (x1 - mp1) * inv_ext, (x2 - mp2) * inv_ext
             ep += d0 * d0 + d1 * d1 + d2 * d2
             g_st_p[i, kk, 0] = cp * d0
@@ -237,10 +245,7 @@ def _key_terms(pk, rk, kt, s, arm, ref_p, ref_q, inv_ext, g_st_p, g_st_q, g_vel,
             w, a, b, c = g_st_q[i, kk, 0], g_st_q[i, kk, 1], g_st_q[i, kk, 2], g_st_q[i, kk, 3]
             e0, e1, e2, e3 = w - mq0, a - mq1, b - mq2, c - mq3
             if has_ref:
-                e0 -= float(ref_q[i, kk, 0])
-                e1 -= float(ref_q[i, kk, 1])
-                e2 -= float(ref_q[i, kk, 2])
-                e3 -= float(ref_q[i, kk, 3])
+                e0, e1, e2, e3 = _minus(ref_q, i, kk, e0, e1, e2, e3)
             eq += e0 * e0 + e1 * e1 + e2 * e2 + e3 * e3
             q0, q1, q2, q3 = float(rk[i, kk, 0]), float(rk[i, kk, 1]), float(rk[i, kk, 2]), float(rk[i, kk, 3])
             n = np.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
