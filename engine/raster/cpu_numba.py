@@ -21,7 +21,8 @@ contiguous rows, no write conflicts); ``project_backward`` chains them to the 3D
 parameters. Semantics are those of :mod:`engine.raster.reference`.
 
 Where the time goes (200k Gaussians at 512x512, 2 threads, wall ms, best of 15 per stage,
-2026-11-23 on the shared 2-core machine): raster_backward ~32, raster_forward ~14.5,
+2026-11-23 on the shared 2-core machine, kernel revision 088fb47; later figures in
+docs/benchmarks.md): raster_backward ~32, raster_forward ~14.5,
 bin_tiles ~12.5 (per-tile radix sort + copy of the records into tile order ~7.8, cache-miss
 bound; counting ~2.7; fill ~1.7), project_forward ~2.3, project_backward ~2.3,
 sum_instances ~1.3, Python/torch glue ~4.
