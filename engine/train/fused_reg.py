@@ -30,6 +30,7 @@ import torch
 from numba import njit, prange
 
 from ..raster.cpu import kernel_threads  # Numba at torch's thread count, torch at one
+from .fused import _f32  # float32 C-contiguous NumPy view (no copy for float32 tensors)
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 EPS = 1e-12  # quat_normalize's threshold
@@ -297,17 +298,13 @@ def _key_terms(pk, rk, kt, s, arm, ref_p, ref_q, inv_ext, g_st_p, g_st_q, g_vel,
     return static, vel_sum * cv * 0.5, acc_sum * ca * 0.5
 
 
-def _np32(t: torch.Tensor) -> np.ndarray:
-    return t.detach().to(torch.float32).contiguous().numpy()
-
-
 class _FusedARAP(torch.autograd.Function):
     @staticmethod
     def forward(ctx, p0, q0, p1, q1, graph_idx):
         gp0, gq0 = np.empty((p0.shape[0], 3)), np.empty((p0.shape[0], 4))
         gp1, gq1 = np.empty((p0.shape[0], 3)), np.empty((p0.shape[0], 4))
         gidx = graph_idx.detach().to(torch.int64).contiguous().numpy()
-        val = _arap(_np32(p0), _np32(q0), _np32(p1), _np32(q1), gidx, gp0, gq0, gp1, gq1)
+        val = _arap(_f32(p0), _f32(q0), _f32(p1), _f32(q1), gidx, gp0, gq0, gp1, gq1)
         ctx.grads = (gp0, gq0, gp1, gq1)
         ctx.dtypes = (p0.dtype, q0.dtype, p1.dtype, q1.dtype)
         return p0.new_tensor(val)
@@ -327,10 +324,10 @@ class _FusedKeyTerms(torch.autograd.Function):
         g_vel, g_acc = np.empty((N, K, 3)), np.empty((N, K, 3))
         empty = np.zeros((0, 0, 0), np.float32)
         with kernel_threads():
-            st, vel, acc = _key_terms(_np32(pos_keys), _np32(rot_keys), _np32(key_times),
-                                      _np32(s).astype(np.float64), _np32(arm).astype(np.float64),
-                                      empty if ref_p is None else _np32(ref_p),
-                                      empty if ref_q is None else _np32(ref_q), float(inv_ext), g_st_p, g_st_q, g_vel,
+            st, vel, acc = _key_terms(_f32(pos_keys), _f32(rot_keys), _f32(key_times),
+                                      s.detach().double().cpu().numpy(), arm.detach().double().cpu().numpy(),
+                                      empty if ref_p is None else _f32(ref_p),
+                                      empty if ref_q is None else _f32(ref_q), float(inv_ext), g_st_p, g_st_q, g_vel,
                                       g_acc, np.empty((N, 3)))
         ctx.grads = (g_st_p, g_st_q, g_vel, g_acc)
         ctx.dtypes = (pos_keys.dtype, rot_keys.dtype)
