@@ -21,8 +21,10 @@ test: $(STAMP)
 demo: $(STAMP)
 	$(PY) tools/demo.py
 
-dist: $(STAMP)
-	$(PY) tools/build_dist.py
+# Zipping and validating need only a stdlib Python 3.11; the validator (Blender's
+# blender_ext.py) comes from .venv's bpy wheel when present, else `blender` on PATH.
+dist:
+	$(PYTHON) tools/build_dist.py
 
 clean:
 	rm -rf dist out .pytest_cache
