@@ -38,13 +38,18 @@ PRESETS = {
 }
 
 # object ids (also Blender pass_index; 0 = static background)
-OBJECT_IDS = {"background": 0, "rigid_cube": 1, "arm_base": 2, "arm_upper": 3, "arm_fore": 4, "flag": 5}
+OBJECT_IDS = {"background": 0, "rigid_cube": 1, "arm_base": 2, "arm_upper": 3, "arm_fore": 4, "flag": 5,
+              "ball": 6, "swing_upper": 7, "swing_fore": 8}
 KIND_OBJECTS = {
     "rigid": ["rigid_cube"],
     "articulated": ["arm_base", "arm_upper", "arm_fore"],
     "nonrigid": ["flag"],
+    # large motion: a ball rolling (and bouncing) across most of the frame and a fast two-link
+    # pendulum whose tip sweeps ~2 units: objects crossing a third of the frame or more
+    "large": ["ball", "swing_upper", "swing_fore"],
 }
 KIND_OBJECTS["all"] = KIND_OBJECTS["rigid"] + KIND_OBJECTS["articulated"] + KIND_OBJECTS["nonrigid"]
+BALL_RADIUS = 0.35
 
 CV_FROM_BL = np.diag([1.0, -1.0, -1.0])
 SCENE_TARGET = np.array([0.0, 0.0, 0.9])
@@ -128,6 +133,14 @@ def object_transforms(name: str, ti: float, seed: int) -> np.ndarray:
         return trs((0.0, 0.0, 0.9), rx=-0.3 - 0.8 * math.sin(2 * np.pi * 1.3 * ti + ph))
     if name == "flag":
         return trs((-0.2, -0.6, 1.2), rx=math.pi / 2, rz=0.2 + 0.3 * ti)
+    if name == "ball":  # rolls along x over ~3.6 units (no slip: angle = distance / radius), two bounces
+        x = -1.9 + 3.6 * ti
+        z = -0.1 + BALL_RADIUS + 0.45 * abs(math.sin(2 * np.pi * ti + 0.3 * ph))
+        return trs((x, 0.5 + 0.2 * math.sin(np.pi * ti + ph), z), ry=(x + 1.9) / BALL_RADIUS)
+    if name == "swing_upper":  # pendulum hung from a fixed pivot in the air, swinging +-1.1 rad
+        return trs((0.6, -0.5, 2.1), ry=1.1 * math.sin(2 * np.pi * 1.2 * ti + ph))
+    if name == "swing_fore":  # hinged at the end of the upper link, faster and wider
+        return trs((0.0, 0.0, -0.9), ry=1.3 * math.sin(2 * np.pi * 2.0 * ti + 0.5 * ph))
     raise KeyError(name)
 
 
@@ -277,6 +290,19 @@ def build_scene(bpy, kind: str, seed: int, width: int, height: int):
         wave.start_position_x = -0.7
         wave.use_y = False
         objs["flag"] = flag
+
+    if "ball" in wanted:
+        m = _textured_material(bpy, "ball", seed + 5, 2.5, "Generated", (0.95, 0.75, 0.15))
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=32, ring_count=16, radius=BALL_RADIUS, location=(0, 0, 0))
+        ball = bpy.context.active_object
+        ball.name = "ball"
+        ball.data.materials.append(m)
+        objs["ball"] = ball
+    if "swing_upper" in wanted:
+        m = _textured_material(bpy, "swing", seed + 6, 2.0, "Generated", (0.75, 0.25, 0.85))
+        upper = _add_box(bpy, "swing_upper", (0.22, 0.22, 0.9), (0, 0, -0.45), m)
+        fore = _add_box(bpy, "swing_fore", (0.18, 0.18, 0.8), (0, 0, -0.4), m, parent=upper)
+        objs.update(swing_upper=upper, swing_fore=fore)
 
     for name, ob in objs.items():
         ob.pass_index = OBJECT_IDS[name]

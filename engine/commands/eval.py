@@ -43,6 +43,9 @@ def add_arguments(parser):
     parser.add_argument("--split", default="val", choices=("val", "train"), help="cameras to evaluate (default val)")
     parser.add_argument("--backend", default="auto", help="rasteriser backend (auto, reference, cpu, gsplat)")
     parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    parser.add_argument("--sheet", help="write a contact sheet PNG here: ground truth | render | |error| for "
+                                        "frames spread over the split (moving regions outlined in red)")
+    parser.add_argument("--sheet-frames", type=int, default=6, help="rows of the contact sheet (default 6)")
     parser.add_argument("--json", action="store_true", help="print the result object as JSON on stdout")
 
 
@@ -170,11 +173,14 @@ def _mask_for(clip, i: int):
 # evaluation
 # ----------------------------------------------------------------------------------
 def evaluate_bundle(bundle_dir, clip_path=None, lpips_onnx=None, split: str = "val", backend: str = "auto",
-                    device: str = "auto", reporter=None, write: bool = True, keep_images: bool = False) -> dict:
+                    device: str = "auto", reporter=None, write: bool = True, keep_images: bool = False,
+                    sheet=None, sheet_frames: int = 6) -> dict:
     """Evaluate ``bundle_dir`` on its ``split`` cameras; returns the eval.json object.
 
     With ``keep_images`` the result also holds ``_images``: a list of
     ``(frame, pred uint8 [H,W,3], gt uint8 [H,W,3])`` (not written to eval.json).
+    With ``sheet`` (a path) a contact sheet of ``sheet_frames`` frames spread over the
+    split is written there (:func:`engine.viz.contact_sheet`) and named in the result.
     """
     import cv2
     import numpy as np
@@ -201,6 +207,9 @@ def evaluate_bundle(bundle_dir, clip_path=None, lpips_onnx=None, split: str = "v
     model = model_from_bundle(bundle, dev)
     per = []
     images = []
+    sheet_rows, sheet_masks = [], []
+    n_sheet = max(1, min(int(sheet_frames), len(cams))) if sheet else 0
+    sheet_pick = set(np.linspace(0, len(cams) - 1, n_sheet).round().astype(int).tolist()) if sheet else set()
     with torch.no_grad():
         for n, c in enumerate(cams):
             i, gt = _camera_frame(clip, c, start, path)
@@ -223,8 +232,13 @@ def evaluate_bundle(bundle_dir, clip_path=None, lpips_onnx=None, split: str = "v
                 row["masked_ssim"] = float(ssim_map(pred, target)[mt].mean())
             row["lpips"] = lp(pred.cpu().numpy(), target.cpu().numpy()) if lp else None
             per.append(row)
+            if keep_images or n in sheet_pick:
+                pred_u8 = (pred.cpu().numpy() * 255 + 0.5).astype(np.uint8)
             if keep_images:
-                images.append((int(c["frame"]), (pred.cpu().numpy() * 255 + 0.5).astype(np.uint8), gt))
+                images.append((int(c["frame"]), pred_u8, gt))
+            if n in sheet_pick:
+                sheet_rows.append((gt, pred_u8))
+                sheet_masks.append(mask if mask is not None and mask.sum() > 16 else None)
             if reporter is not None:
                 reporter.progress("eval", n + 1, len(cams), psnr=row["psnr"])
     mean = {"frames": len(per)}
@@ -238,6 +252,10 @@ def evaluate_bundle(bundle_dir, clip_path=None, lpips_onnx=None, split: str = "v
               "notes": [] if lp else [f"lpips {LPIPS_NOTE}"]}
     if not any("masked_psnr" in r for r in per):
         result["notes"].append("masked metrics unavailable: the dataset provides no dynamic masks")
+    if sheet:
+        from ..viz import contact_sheet, write_png
+
+        result["sheet"] = str(write_png(sheet, contact_sheet(sheet_rows, sheet_masks)))
     if write:
         atomic_write_json(Path(bundle_dir) / "eval.json", result)
         result["eval_json"] = str(Path(bundle_dir) / "eval.json")
@@ -250,13 +268,17 @@ def run(args, reporter):
     import json
 
     result = evaluate_bundle(args.bundle, args.clip, args.lpips_onnx, args.split, args.backend, args.device,
-                             reporter=None if args.json else reporter)
+                             reporter=None if args.json else reporter, sheet=args.sheet,
+                             sheet_frames=args.sheet_frames)
     if args.json:
         print(json.dumps(result))
         return 0
     m = result["mean"]
     reporter.log(f"{m['frames']} {args.split} frames: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}"
+                 + (f", masked PSNR {m['masked_psnr']:.2f} dB" if m.get("masked_psnr") is not None else "")
                  + (f", LPIPS {m['lpips']:.4f}" if m["lpips"] is not None else f", LPIPS {LPIPS_NOTE}"))
+    if result.get("sheet"):
+        reporter.log(f"contact sheet: {result['sheet']}")
     fields = {k: v for k, v in result.items() if k != "bundle"}
     reporter.result(bundle=result["bundle"], **fields)
     return 0
