@@ -172,7 +172,8 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     full = dataclasses.replace(pr.tracks, xy=xy, visible=vis) if dataclasses.is_dataclass(pr.tracks) else pr.tracks
     priors = _FramePriors(tokens=pr.tokens, tracks=full, depth=depth, dynamic=dynamic, train_order=order,
                           recomputed=list(getattr(pr, "recomputed", [])),
-                          depth_source=depth_source(prior_config or PriorConfig()))
+                          depth_source=depth_source(prior_config or PriorConfig()),
+                          sources=_prior_sources(prior_config or PriorConfig()))
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
                         frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
                         extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""),
@@ -206,6 +207,14 @@ class _FramePriors:
     train_order: np.ndarray  # frame indices of the training frames, in time order
     recomputed: list
     depth_source: str = "weight-free"  # see depth_source()
+    sources: dict = dataclasses.field(default_factory=dict)  # scene.json "priors": model + sha256 per prior
+
+
+def _prior_sources(prior_config) -> dict:
+    """Which model (name + SHA-256) or weight-free backend produces each prior (``engine.models``)."""
+    from .models import describe_priors
+
+    return describe_priors(prior_config)
 
 
 def depth_source(prior_config) -> str:
@@ -263,7 +272,7 @@ def bundle_scene(prep: PreparedClip, cfg: TrainConfig, **extra) -> dict:
             for i in range(len(prep.times))]
     return B.new_scene(int(prep.frame_numbers.min()), int(prep.frame_numbers.max()), prep.fps, cams,
                        config=cfg.to_dict(), extent=prep.extent, source={"clip": prep.source, "width": int(w)},
-                       **extra)
+                       priors=getattr(prep.priors, "sources", {}), **extra)
 
 
 def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None = None, resume: bool = False,
@@ -293,7 +302,8 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
     device = pick_device(cfg.device)
     data = training_data(prep, device)
     trainer = Trainer(data, nodes, cfg, out_dir, reporter, resume=resume,
-                      scene_extra={"source": {"clip": prep.source, "width": int(prep.frames.shape[2])}})
+                      scene_extra={"source": {"clip": prep.source, "width": int(prep.frames.shape[2])},
+                                   "priors": prep.priors.sources})
     return trainer.run()
 
 

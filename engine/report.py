@@ -185,6 +185,11 @@ def write_report(bundle_dir, out_html=None, eval_result=None, clip_path=None, de
                      f'{cam["frame"]} (time {cam["time"]:.3f}); colour = p_dyn (blue static → red dynamic)'
                      "</figcaption></figure>")
 
+    # priors: which model (name + SHA-256) or weight-free backend produced each (engine/models)
+    parts.append("<h2>Priors</h2>")
+    parts.append(_table(_prior_rows(scene.get("priors") or {}), ["prior", "backend", "model", "sha256", "licence"])
+                 if scene.get("priors") else "<p><em>not recorded (bundle written before the model manager)</em></p>")
+
     # config
     parts.append("<h2>Config</h2>")
     cfg = scene.get("config") or {}
@@ -203,6 +208,15 @@ def write_report(bundle_dir, out_html=None, eval_result=None, clip_path=None, de
 
     atomic_write_text(out_html, doc)
     return out_html
+
+
+def _prior_rows(priors: dict) -> list[list]:
+    """One table row per prior from scene.json ``priors``: weight-free backends name no model."""
+    rows = []
+    for role, src in priors.items():
+        model = src.get("model") or (src.get("file") if src.get("backend") == "file" else "weight-free")
+        rows.append([role, src.get("backend"), model, src.get("sha256") or "", src.get("license") or ""])
+    return rows
 
 
 def _frame_image(bundle, cam, clip_path):

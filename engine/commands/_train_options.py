@@ -36,6 +36,9 @@ def add_clip_options(parser):
     pri.add_argument("--depth-path", help="precomputed depth (.npy [F,H,W] or folder of 16-bit PNG)")
     pri.add_argument("--mask-path", help="precomputed masks (folder of PNG)")
     pri.add_argument("--tracks-path", help="precomputed tracks (.npz with xy [P,F,2], visible [P,F])")
+    pri.add_argument("--no-models", action="store_true",
+                     help="ignore installed models (python -m engine models): weight-free backends for every "
+                          "prior not given above")
 
 
 def config_from_args(args):
@@ -75,7 +78,11 @@ def prior_config_from_args(args):
     if args.tracks_model:
         cfg.tracks_backend, cfg.tracks_model = "onnx", args.tracks_model
     cfg.depth_path, cfg.mask_path, cfg.tracks_path = args.depth_path, args.mask_path, args.tracks_path
-    return cfg
+    if getattr(args, "no_models", False):
+        return cfg
+    from ..models import resolve_prior_models  # backend auto: installed models fill the open roles
+
+    return resolve_prior_models(cfg)
 
 
 def clip_options(args) -> dict:

@@ -34,13 +34,22 @@ def _default_backend(cfg, field: str):
 
 
 def role_is_open(cfg, role: str) -> bool:
-    """True when ``cfg`` runs the weight-free default for ``role`` with no model and no precomputed file."""
+    """True when ``cfg`` runs the default (or ``auto``) backend for ``role`` with no model and
+    no precomputed file, i.e. the user did not choose."""
     backend, model, path = ROLE_FIELDS[role]
     if not hasattr(cfg, backend):
         return False
     if path is not None and getattr(cfg, path, None):
         return False
-    return getattr(cfg, backend) == _default_backend(cfg, backend) and not getattr(cfg, model, None)
+    return getattr(cfg, backend) in (_default_backend(cfg, backend), "auto") and not getattr(cfg, model, None)
+
+
+def shipped_for_role(role: str, registry) -> tuple[ModelSpec, Path] | None:
+    """The first registry model of ``role`` that ships inside the product (and is present)."""
+    for spec in registry:
+        if spec.role == role and spec.shipped_path is not None:
+            return spec, spec.shipped_path
+    return None
 
 
 def installed_for_role(role: str, store: ModelStore | None = None, registry=None) -> tuple[ModelSpec, Path] | None:
@@ -57,8 +66,10 @@ def installed_for_role(role: str, store: ModelStore | None = None, registry=None
 def resolve_prior_models(cfg, store: ModelStore | None = None, registry=None, reporter=None):
     """Return a copy of the PriorConfig ``cfg`` with every open role using its installed model.
 
-    A role with an installed model switches to backend ``"onnx"`` with that file; other
-    roles keep their weight-free backend. Nothing is downloaded.
+    A role with an installed model (cache) switches to backend ``"onnx"`` with that file;
+    a role whose backend is ``"auto"`` and that has none installed takes the model shipped
+    in the product (RAFT-small for flow) when there is one; other roles keep their
+    weight-free backend. Nothing is downloaded.
     """
     store = store or ModelStore()
     registry = registry if registry is not None else load_registry()
@@ -67,6 +78,8 @@ def resolve_prior_models(cfg, store: ModelStore | None = None, registry=None, re
         if not role_is_open(cfg, role):
             continue
         found = installed_for_role(role, store, registry)
+        if found is None and getattr(cfg, backend) == "auto":
+            found = shipped_for_role(role, registry)
         if found is not None:
             spec, path = found
             changes[backend], changes[model] = "onnx", str(path)
@@ -106,5 +119,18 @@ def describe_priors(cfg, store: ModelStore | None = None, registry=None) -> dict
         elif getattr(cfg, model, None):
             out[role] = {"backend": getattr(cfg, backend), **_model_identity(getattr(cfg, model), store, registry)}
         else:
-            out[role] = {"backend": getattr(cfg, backend)}
+            name, file = _effective_backend(role, getattr(cfg, backend))
+            out[role] = {"backend": name, **(_model_identity(file, store, registry) if file else {})}
     return out
+
+
+def _effective_backend(role: str, backend: str) -> tuple[str, str | None]:
+    """``(backend, model path)`` an unresolved ``auto`` runs as: the priors decide (today only
+    flow has ``auto``: the shipped RAFT-small when usable, else DIS)."""
+    if backend != "auto" or role != "flow":
+        return backend, None
+    try:
+        from ..priors.flow import resolve_flow_backend
+    except ImportError:
+        return backend, None
+    return resolve_flow_backend("auto", None)
