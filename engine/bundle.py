@@ -499,4 +499,34 @@ def check_output_dir(path: str | os.PathLike, overwrite: bool = False, resume: b
     if path.is_dir() and any(path.iterdir()) and not (overwrite or resume):
         raise InputError("output folder already holds files", path,
                          "choose a new --out folder, pass --resume to continue that run, or --overwrite to replace it")
+    if resume and not overwrite:
+        refuse_finished_resume(path)
     return path
+
+
+def finished_steps(path: str | os.PathLike) -> int | None:
+    """Steps of the finished training run in bundle ``path``, or ``None``.
+
+    A bundle is finished when its ``scene.json`` is a training result (not the ``init``
+    stage) whose ``stats.steps`` reached its ``config.steps`` and no checkpoint is left
+    to continue (a finished run removes it). Only reads ``scene.json``; never raises.
+    """
+    path = Path(path)
+    if (path / "checkpoints" / "checkpoint.pt").exists():
+        return None
+    try:
+        scene = json.loads((path / SCENE_FILE).read_text(encoding="utf-8"))
+        steps, target = scene["stats"]["steps"], scene["config"]["steps"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if scene.get("stage") == "init" or not isinstance(steps, int) or not isinstance(target, int):
+        return None
+    return steps if steps >= target else None
+
+
+def refuse_finished_resume(path: str | os.PathLike) -> None:
+    """Raise :class:`InputError` when ``--resume`` targets a finished bundle."""
+    steps = finished_steps(path)
+    if steps is not None:
+        raise InputError(f"this bundle is a finished run ({steps} steps); there is no checkpoint to resume", path,
+                         "drop --resume to keep it, pass --overwrite to train it again, or choose a new --out")

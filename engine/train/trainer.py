@@ -24,6 +24,7 @@ from ..geometry.camera import project, unproject
 from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
 from ..geometry.quaternion import quat_apply, quat_conj, quat_normalize, quat_to_matrix
 from ..protocol import Reporter
+from . import checkpoint as CK
 from . import losses as L
 from .config import TrainConfig
 from .data import TrainingData
@@ -340,10 +341,13 @@ class Trainer:
         self.static_ref = None
         # a PhaseTimer (engine/train/phases.py) when a bench profiles the step; None in runs
         self.phases = None
+        # which run this is (data + config hashes): stored in checkpoints, checked on resume
+        self.identity = CK.run_identity(self.data, self.cfg)
         if resume and self.ckpt_path.exists():
             self._load_checkpoint()
         else:
             if resume:
+                B.refuse_finished_resume(self.out_dir)
                 self.reporter.log(f"no checkpoint at {self.ckpt_path}; starting a new run", "warning")
             self.model = build_model(self.data, nodes, self.cfg, self.gen)
             fg = node_fg_score(self.data, nodes)
@@ -708,6 +712,7 @@ class Trainer:
     def _checkpoint_state(self) -> dict:
         return {
             "step": self.step,
+            "identity": self.identity,
             "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
             "optimizer": self.opt.state_dict(),
             "gen": self._gen_state if getattr(self, "_gen_state", None) is not None else self.gen.get_state(),
@@ -731,11 +736,17 @@ class Trainer:
         return self.ckpt_path
 
     def _load_checkpoint(self):
+        state = CK.load_state(self.ckpt_path)
+        CK.check_identity(state, self.identity, self.ckpt_path)
         try:
-            state = torch.load(self.ckpt_path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # corrupt / foreign file
-            raise InputError(f"cannot load checkpoint ({exc})", self.ckpt_path,
-                             "delete the checkpoints folder to start over, or pass a different --out") from None
+            self._restore(state)
+        except (KeyError, RuntimeError, TypeError, ValueError, AttributeError) as exc:
+            raise InputError(f"checkpoint does not match this run's model ({type(exc).__name__}: "
+                             f"{str(exc).splitlines()[0][:120]})", self.ckpt_path,
+                             "delete the checkpoints folder to start over, or pass --overwrite") from None
+        self.reporter.log(f"resumed from step {self.step} ({self.ckpt_path})")
+
+    def _restore(self, state: dict) -> None:
         sd = state["model"]
         dev = self.device
         if "node_fg" not in sd:  # a checkpoint from before the static-motion score
@@ -774,7 +785,6 @@ class Trainer:
         if tracks is not None:
             self.track_ids, self.track_canon = tracks["ids"].to(dev), tracks["canon"].to(dev)
             self.track_idx, self.track_w, self.track_vis = tracks["idx"].to(dev), tracks["w"].to(dev), tracks["vis"].to(dev)
-        self.reporter.log(f"resumed from step {self.step} ({self.ckpt_path})")
 
     # ---------------------------------------------------------------- main loop
     def train(self) -> None:
@@ -824,6 +834,9 @@ class Trainer:
                         self.grad_count += vis
                         torch.maximum(self.max_radii, radii.to(self.max_radii), out=self.max_radii)
                 self.step += 1
+                # the step's frame draw is done: a checkpoint from here on stores the sampler
+                # state after it, so a resume draws the next step's frame, not this one again
+                self._gen_state = None
                 if cfg.densify_from <= self.step < cfg.densify_until and self.step % cfg.densify_every == 0:
                     self._densify()
                 elif cfg.rebind_every and self.step % cfg.rebind_every == 0:
@@ -938,5 +951,6 @@ class Trainer:
         metrics = {"eval_init": initial, "eval": self.evaluate()}
         metrics["iterations_per_s"] = round(self.step / max(self.train_seconds, 1e-9), 3)
         path = self.export_bundle(metrics)
+        CK.discard(self.ckpt_path)  # finished: a later --resume must not retrain over the bundle
         return {"bundle": str(path), "steps": self.step, "gaussians": self.model.num_gaussians,
                 "nodes": self.model.num_nodes, **metrics}
