@@ -258,6 +258,9 @@ class MotionSplatsPreferences(bpy.types.AddonPreferences):
         if box is not None and job.state != "finished":
             for line in job.error_summary():
                 box.label(text=line[:160])
+        models_ui.draw(layout, context)
 
 
-CLASSES = (MotionSplatsPreferences,)
+from . import models_ui  # noqa: E402  (the Models box and its operators, issue #20)
+
+CLASSES = (MotionSplatsPreferences, *models_ui.CLASSES)
