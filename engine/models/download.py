@@ -133,6 +133,15 @@ def _check(spec: ModelSpec, part: Path, url: str) -> str:
     return digest
 
 
+def _install(store: ModelStore, spec: ModelSpec, part: Path, digest: str, source: str | None) -> Path:
+    try:
+        return store.install(spec, part, digest, source)
+    except OSError as exc:
+        part.unlink(missing_ok=True)
+        raise DownloadError(f"cannot move {spec.name} into place ({exc.strerror or exc})", store.folder(spec),
+                            "free some space or make the model cache writable, then fetch again") from exc
+
+
 def fetch(spec: ModelSpec, store: ModelStore | None = None, reporter=None, timeout: float = DEFAULT_TIMEOUT,
           urls=None) -> dict:
     """Install ``spec`` into ``store``: copy the shipped file or download it (resuming), check, move in place.
@@ -170,7 +179,7 @@ def fetch(spec: ModelSpec, store: ModelStore | None = None, reporter=None, timeo
             raise DownloadError(f"cannot copy the shipped {spec.name} ({exc.strerror or exc})", folder,
                                 "free some space or set MOTION_SPLATS_MODELS to another folder") from exc
         digest = _check(spec, part, str(shipped))
-        path = store.install(spec, part, digest, None)
+        path = _install(store, spec, part, digest, None)
         return {"name": spec.name, "path": str(path), "sha256": digest, "bytes": path.stat().st_size,
                 "source": str(shipped), "already": False}
     urls = list(urls if urls is not None else spec.urls)
@@ -194,7 +203,7 @@ def fetch(spec: ModelSpec, store: ModelStore | None = None, reporter=None, timeo
             if "cannot reach" in exc.problem or exc.problem.startswith("HTTP "):
                 continue
             raise
-        path = store.install(spec, part, digest, url)
+        path = _install(store, spec, part, digest, url)
         return {"name": spec.name, "path": str(path), "sha256": digest, "bytes": path.stat().st_size,
                 "source": url, "already": False}
     raise failure

@@ -218,3 +218,14 @@ def test_cli_fetch_verify_remove_with_extra_registry(server, tmp_path):
     assert res.returncode == 2 and "unknown model 'nope'" in res.stderr
     assert engine("remove", "tiny-depth").returncode == 0
     assert not (tmp_path / "models" / "tiny-depth").exists()
+
+
+def test_move_into_place_failure_is_one_line_and_leaves_no_part(server, tmp_path):
+    data = tiny_onnx_bytes()
+    spec = _spec(data, server.add("/tiny.onnx", data))
+    store = ModelStore(tmp_path / "models")
+    store.model_path(spec).mkdir(parents=True)  # something that os.replace cannot overwrite
+    (store.model_path(spec) / "x").write_text("x")
+    with pytest.raises(DownloadError, match="cannot move tiny-depth into place"):
+        fetch(spec, store)
+    assert not store.part_path(spec).exists() and store.read_record(spec) is None
