@@ -124,7 +124,8 @@ def test_static_camera_falls_back_with_warning(tmp_path):
     assert info["model"] == "static" and info["num_registered"] == 6 and info["num_points"] == 0
     np.testing.assert_allclose(out.w2c, np.tile(np.eye(4), (6, 1, 1)))
     f = 80.0 / np.tan(np.radians(35.0))  # 70 degrees across the 160-px long side
-    np.testing.assert_allclose(out.K[:, 0, 0], f) and np.testing.assert_allclose(out.K[:, :2, 2], [[80, 60]] * 6)
+    np.testing.assert_allclose(out.K[:, 0, 0], f)
+    np.testing.assert_allclose(out.K[:, :2, 2], [[80, 60]] * 6)
     warn = [m for lvl, m in rep.messages if lvl == "warning"]
     assert len(warn) == 1 and "static camera" in warn[0] and "--fov" in warn[0] and "70 degree" in warn[0]
     assert np.isfinite(out.w2c).all() and out.scene_scale == 1.0
