@@ -15,7 +15,8 @@
   Points would copy the rig's N vertex groups onto every point, ~10 s/frame at 2000
   nodes): ``POINTS`` (radius = mean σ × "Radius Scale") or ``ELLIPSOIDS`` for Cycles
   (Instance on Points of an 80-face ico-sphere enclosing 3σ, scaled by σ per axis);
-* an animated camera for the bundle's cameras, and the scene frame range / fps.
+* an animated camera for the bundle's cameras (the scene camera only when there is none),
+  and the scene frame range / fps. Render settings are :mod:`.render_setup`'s job.
 
 Rotation of the ellipsoids: for every kept Gaussian ``i`` of ``G`` the mesh carries two
 auxiliary vertices ``G + 2i + k`` at ``x + h·R(q)·e_k`` (``k`` = the Gaussian's local x
@@ -28,7 +29,7 @@ in ``ELLIPSOIDS`` builds (``ms_center`` is False on them).
 Ellipsoid material: alpha is ``opacity · exp(−½ d²)`` where ``d`` is the distance from
 the instance centre to the camera ray in instance space (σ units: the instance is scaled
 by σ), i.e. the Gaussian's peak along the ray, cut at 3σ; back faces are transparent.
-Colour is emitted (``Standard`` view transform shows the DC colour).
+Colour is emitted (Set up render's ``Standard`` view transform shows the DC colour).
 """
 
 from __future__ import annotations
@@ -220,9 +221,9 @@ def build_camera(collection, scene, scene_desc, name: str = "MotionSplatsCamera"
     data.clip_start = 0.01
     obj = bpy.data.objects.new(name, data)
     collection.objects.link(obj)
-    r = scene.render
-    r.resolution_x, r.resolution_y, r.resolution_percentage = s["res_x"], s["res_y"], 100
-    r.pixel_aspect_x, r.pixel_aspect_y = s["pixel_aspect_x"], s["pixel_aspect_y"]
+    # the render size this camera's K needs; Set up render (render_setup.py) applies it
+    obj["ms_res_x"], obj["ms_res_y"] = int(s["res_x"]), int(s["res_y"])
+    obj["ms_pixel_aspect_x"], obj["ms_pixel_aspect_y"] = float(s["pixel_aspect_x"]), float(s["pixel_aspect_y"])
     obj.rotation_mode = "QUATERNION"
     frames = bundle_io.frame_of_time(scene_desc, [c["time"] for c in cams])
     order = np.argsort(frames, kind="stable")
@@ -251,15 +252,6 @@ def build_camera(collection, scene, scene_desc, name: str = "MotionSplatsCamera"
     return obj
 
 
-def configure_cycles(scene) -> None:
-    """Transparent bounces for stacked splats; Standard view transform (DC colour)."""
-    cy = getattr(scene, "cycles", None)
-    if cy is not None:
-        cy.transparent_max_bounces = max(cy.transparent_max_bounces, 1024)
-        cy.max_bounces = max(cy.max_bounces, 8)
-    scene.view_settings.view_transform = "Standard"
-
-
 def build_bundle_into_scene(context, bundle_dir, collection_name: str | None = None, density: float = 1.0,
                             with_rig: bool = True, preview: str = "POINTS", empty_display: str = "SPHERE",
                             camera: bool = True) -> dict:
@@ -272,10 +264,15 @@ def build_bundle_into_scene(context, bundle_dir, collection_name: str | None = N
         canonical positions, with the preview modifier only).
     preview : ``'POINTS'`` or ``'ELLIPSOIDS'``.
 
+    Render settings are left alone (Set up render, :mod:`.render_setup`, is the explicit
+    step); only the frame range / rate follow the bundle, and that change is listed in
+    ``scene_changes``.
+
     Returns
     -------
     dict with ``collection``, ``empties`` (list), ``armature``, ``mesh``, ``camera``,
-    ``gaussians`` (kept count), ``key_frames`` and ``timings`` (seconds per stage).
+    ``gaussians`` (kept count), ``key_frames``, ``timings`` (seconds per stage) and
+    ``scene_changes`` (lines describing changed scene settings).
     """
     if preview not in PREVIEW_MODES:
         raise ValueError(f"preview must be one of {PREVIEW_MODES}, not {preview!r}")
@@ -289,9 +286,13 @@ def build_bundle_into_scene(context, bundle_dir, collection_name: str | None = N
     col["ms_bundle"] = str(Path(bundle_dir).resolve())
     col["ms_preview"] = preview
     col["ms_density"] = float(density)
-    apply_scene_time(scene, b.scene)
+    col["ms_time"] = {k: float(b.scene["time"][k]) for k in ("frame_start", "frame_end", "fps")}
+    before = (scene.frame_start, scene.frame_end, round(scene.render.fps / scene.render.fps_base, 4))
+    apply_scene_time(scene, b.scene)  # the F-curves are keyed on these frames: the timeline must show them
+    after = (scene.frame_start, scene.frame_end, round(scene.render.fps / scene.render.fps_base, 4))
+    changes = [f"frames, fps: {before} -> {after}"] if before != after else []
     out = {"collection": col, "empties": [], "armature": None, "mesh": None, "camera": None,
-           "gaussians": 0, "key_frames": None, "timings": timings}
+           "gaussians": 0, "key_frames": None, "timings": timings, "scene_changes": changes}
 
     nodes, gs = b.nodes, b.gaussians
     t = _time.perf_counter()
@@ -308,7 +309,6 @@ def build_bundle_into_scene(context, bundle_dir, collection_name: str | None = N
     t = _time.perf_counter()
     if camera:
         out["camera"] = build_camera(col, scene, b.scene)
-    configure_cycles(scene)
     timings["camera"] = _time.perf_counter() - t
     timings["total"] = _time.perf_counter() - t0
     return out

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
+import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import bpy
@@ -82,15 +85,8 @@ def clip_frames(clip) -> tuple[str | None, list[str] | None]:
     return None, [str(p) for p in files]
 
 
-def write_clip_manifest(path, scene, clip, cam_obj=None, with_cameras: bool = True) -> dict:
-    """Clip manifest (``docs/clip_manifest.md``) for Movie Clip ``clip`` and the scene camera.
-
-    The clip's frames are the scene frames ``clip.frame_start ..`` (its duration); the
-    cameras are sampled from ``cam_obj`` (default the scene camera) on those frames, with
-    the render resolution set to the clip size.
-    """
-    from ..engine.io.manifest import write_manifest  # numpy/stdlib only at import time
-
+def clip_range(clip) -> tuple[str | None, list[str] | None, int, int]:
+    """``(video, frames, frame_start, frame_end)`` of a Movie Clip (scene frames)."""
     width, height = int(clip.size[0]), int(clip.size[1])
     if width <= 0 or height <= 0:
         raise InputError(f"movie clip '{clip.name}' has no frames", clip.filepath, "load footage into the clip")
@@ -100,25 +96,79 @@ def write_clip_manifest(path, scene, clip, cam_obj=None, with_cameras: bool = Tr
     if frames is not None:
         n = min(n, len(frames)) if n > 0 else len(frames)
         frames = frames[:n]
-    fe = fs + n - 1
+    return video, frames, fs, fs + n - 1
+
+
+def clip_cameras(scene, clip, cam_obj) -> list[dict]:
+    """``cam_obj`` sampled on the clip's frames at the clip's size (the render settings are
+    restored): ``[{"frame", "K", "w2c", "dist"}]``."""
+    fs, fe = clip_range(clip)[2:]
+    r = scene.render
+    keep = (r.resolution_x, r.resolution_y, r.resolution_percentage)
+    try:
+        r.resolution_x, r.resolution_y, r.resolution_percentage = int(clip.size[0]), int(clip.size[1]), 100
+        return [{"frame": int(c["frame"]), "K": c["K"], "w2c": c["w2c"], "dist": None}
+                for c in sample_camera(scene, cam_obj, range(fs, fe + 1))]
+    finally:
+        r.resolution_x, r.resolution_y, r.resolution_percentage = keep
+
+
+def write_clip_manifest(path, scene, clip, cam_obj=None, with_cameras: bool = True, cameras=None) -> dict:
+    """Clip manifest (``docs/clip_manifest.md``) for Movie Clip ``clip`` and the scene camera.
+
+    The clip's frames are the scene frames ``clip.frame_start ..`` (its duration); the
+    cameras are ``cameras`` (from :func:`clip_cameras`) or, when None and
+    ``with_cameras``, ``cam_obj`` (default the scene camera) sampled on those frames.
+    """
+    from ..engine.io.manifest import write_manifest  # numpy/stdlib only at import time
+
+    video, frames, fs, fe = clip_range(clip)
     fps = float(getattr(clip, "fps", 0) or scene.render.fps / scene.render.fps_base)
-    cams = None
     cam_obj = cam_obj or scene.camera
-    if with_cameras and cam_obj is not None:
-        r = scene.render
-        keep = (r.resolution_x, r.resolution_y, r.resolution_percentage)
-        try:
-            r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
-            cams = [{"frame": int(c["frame"]), "K": c["K"], "w2c": c["w2c"], "dist": None}
-                    for c in sample_camera(scene, cam_obj, range(fs, fe + 1))]
-        finally:
-            r.resolution_x, r.resolution_y, r.resolution_percentage = keep
-    return write_manifest(path, width=width, height=height, fps=fps, frame_start=fs, frame_end=fe,
-                          video=video, frames=frames, cameras=cams)
+    if cameras is None and with_cameras and cam_obj is not None:
+        cameras = clip_cameras(scene, clip, cam_obj)
+    return write_manifest(path, width=int(clip.size[0]), height=int(clip.size[1]), fps=fps, frame_start=fs,
+                          frame_end=fe, video=video, frames=frames, cameras=cameras or None)
 
 
-def edited_nodes(collection) -> bundle_io.NodeArrays:
-    """The bundle's nodes with the splines read back from the collection's Empties."""
+#: A read-back key differs from the bundle by more than this (relative to the node's
+#: largest key) only when an artist changed it: F-curves hold float32 values, and handle
+#: slopes add ~1e-7 relative noise.
+EDIT_TOL = 1e-5
+
+
+@dataclass
+class SentEdits:
+    """What :func:`send_edits` did."""
+
+    path: Path | None  # nodes.npz written (None: nothing was edited, nothing written)
+    backup: Path | None  # copy of the previous nodes.npz
+    edited: list  # indices of the nodes whose splines changed
+    rekeyed: bool  # the shared key frames changed (a key added or moved on some node)
+
+
+def _node_changed(keys, out, inn, ref_keys, ref_out, ref_in) -> np.ndarray:
+    """``[N]`` bool: the read-back spline of a node differs from the bundle's.
+
+    All arrays ``[N, K, C]`` in per-frame units; tangents are compared in value units per
+    key spacing of one frame, so they weigh like the keys.
+    """
+    scale = 1.0 + np.abs(ref_keys).max(axis=(1, 2))
+    diff = np.maximum.reduce([np.abs(keys - ref_keys).max(axis=(1, 2)), np.abs(out - ref_out).max(axis=(1, 2)),
+                              np.abs(inn - ref_in).max(axis=(1, 2))])
+    return diff > EDIT_TOL * scale
+
+
+def edited_nodes(collection) -> tuple[bundle_io.NodeArrays, list, bool]:
+    """The bundle's nodes with the edited splines read back from the collection's Empties.
+
+    Returns ``(nodes, edited, rekeyed)``. Nodes whose F-curves still match the bundle keep
+    their arrays bit for bit (no float32 round trip, no made-up in-tangents); only edited
+    nodes take the read-back keys, and get separate in-tangents only where their handles
+    are really broken. The bundle format has key times shared by all nodes, so a key
+    added on one Empty adds that key time to every node (``rekeyed``); the others are
+    then resampled at it along their unchanged curves.
+    """
     bdir = Path(collection["ms_bundle"])
     b = bundle_io.load_bundle(bdir)
     if b.nodes is None:
@@ -134,24 +184,70 @@ def edited_nodes(collection) -> bundle_io.NodeArrays:
     _, pos_in = fcurves.frames_to_engine_keys(d["key_frames"], d["loc_tangents_in"], fs, fe)
     _, rot_out = fcurves.frames_to_engine_keys(d["key_frames"], d["rot_tangents_out"], fs, fe)
     _, rot_in = fcurves.frames_to_engine_keys(d["key_frames"], d["rot_tangents_in"], fs, fe)
-    arrays = b.nodes.to_dict()
-    arrays.update(key_times=kt, pos_keys=d["loc_keys"], pos_tangents=pos_out, rot_keys=d["rot_keys"],
-                  rot_tangents=rot_out)
-    broken = not (np.allclose(pos_in, pos_out, atol=1e-6) and np.allclose(rot_in, rot_out, atol=1e-6))
-    arrays.pop("pos_tangents_in", None)
-    arrays.pop("rot_tangents_in", None)
-    if broken:
-        arrays.update(pos_tangents_in=pos_in, rot_tangents_in=rot_in)
+    n0 = b.nodes
+    arrays = n0.to_dict()
+    ref = {"pos_in": n0.pos_tangents if n0.pos_tangents_in is None else n0.pos_tangents_in,
+           "rot_in": n0.rot_tangents if n0.rot_tangents_in is None else n0.rot_tangents_in}
+    ref_frames = fcurves.engine_keys_to_frames(n0.key_times, n0.pos_tangents, fs, fe)[0]
+    rekeyed = len(ref_frames) != len(d["key_frames"]) or not np.allclose(ref_frames, d["key_frames"], atol=1e-4)
+    span = float(fe - fs) or 1.0
+    if rekeyed:
+        edited = np.ones(n0.count, bool)
+        arrays.update(key_times=kt)
+    else:  # compare in per-frame units (what the artist sees in the Graph Editor)
+        kt = n0.key_times
+        edited = (_node_changed(d["loc_keys"], pos_out / span, pos_in / span, n0.pos_keys, n0.pos_tangents / span,
+                                ref["pos_in"] / span)
+                  | _node_changed(d["rot_keys"], rot_out / span, rot_in / span, n0.rot_keys,
+                                  n0.rot_tangents / span, ref["rot_in"] / span))
+    read = {"pos_keys": d["loc_keys"], "pos_tangents": pos_out, "rot_keys": d["rot_keys"], "rot_tangents": rot_out,
+            "pos_tangents_in": pos_in, "rot_tangents_in": rot_in}
+    base = {"pos_tangents_in": ref["pos_in"], "rot_tangents_in": ref["rot_in"]}
+    for key, value in read.items():
+        if rekeyed:
+            new = np.asarray(value, np.float32)
+        else:
+            new = np.array(arrays.get(key, base.get(key)), dtype=np.float32, copy=True)
+            new[edited] = value[edited]
+        arrays[key] = new
+    for key, out_key in (("pos_tangents_in", "pos_tangents"), ("rot_tangents_in", "rot_tangents")):
+        inn, out = arrays[key], arrays[out_key]
+        # handles that read back equal (up to float32 noise) are not broken: one tangent
+        same = np.abs(inn - out).max(axis=(1, 2)) <= EDIT_TOL * (1.0 + np.abs(out).max(axis=(1, 2)))
+        fresh = edited & same
+        inn[fresh] = out[fresh]
+        if np.array_equal(inn, out):
+            arrays.pop(key)
     arrays = {k: (np.asarray(v, np.float32) if k not in ("bind_idx", "graph_idx") else v) for k, v in arrays.items()}
-    return bundle_io.NodeArrays.from_dict(arrays, bdir / bundle_io.NODES_FILE)
+    nodes = bundle_io.NodeArrays.from_dict(arrays, bdir / bundle_io.NODES_FILE)
+    return nodes, [int(i) for i in np.flatnonzero(edited)], bool(rekeyed)
 
 
-def send_edits(collection) -> Path:
-    """Write the Empties' edited splines into the bundle's ``nodes.npz`` (atomic)."""
-    nodes = edited_nodes(collection)
+def backup_file(path: Path, kind: str = "edits") -> Path:
+    """Copy ``path`` into a new ``<bundle>/backups/<kind>-<time>/`` (as Fine-tune does)."""
+    base = path.parent / "backups"
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    folder, n = base / f"{kind}-{stamp}", 1
+    while folder.exists():
+        n += 1
+        folder = base / f"{kind}-{stamp}-{n}"
+    folder.mkdir(parents=True)
+    target = folder / path.name
+    shutil.copy2(path, target)
+    return target
+
+
+def send_edits(collection) -> SentEdits:
+    """Write the Empties' edited splines into the bundle's ``nodes.npz`` (atomic), after
+    backing the old file up into ``<bundle>/backups/edits-<time>/``; nothing is written
+    when no node was edited."""
+    nodes, edited, rekeyed = edited_nodes(collection)
     path = Path(collection["ms_bundle"]) / bundle_io.NODES_FILE
+    if not edited:
+        return SentEdits(None, None, [], False)
+    backup = backup_file(path)
     bundle_io.write_nodes(path, nodes)
-    return path
+    return SentEdits(path, backup, edited, rekeyed)
 
 
 def export_ply(collection, path) -> int:

@@ -127,6 +127,56 @@ def cache_dir(context=None, create: bool = False) -> Path:
     return user_dir("cache", create=create)
 
 
+def results_dir(context=None) -> Path:
+    """Where results of an unsaved .blend go: the preference, else ``~/MotionSplats``.
+
+    Never the extension's own folder: uninstalling or updating the extension deletes
+    that, and results are the artist's work.
+    """
+    prefs = get(context)
+    if prefs is not None and prefs.results_dir:
+        return Path(bpy.path.abspath(prefs.results_dir))
+    return Path.home() / "MotionSplats"
+
+
+def platform_cache_dir() -> Path:
+    """The user's cache folder for this program, outside the extension's folders (which
+    an uninstall deletes): ``$XDG_CACHE_HOME``/``~/.cache``, ``~/Library/Caches``,
+    ``%LOCALAPPDATA%``."""
+    if sys.platform == "win32":
+        base = Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local")
+    elif sys.platform == "darwin":
+        base = Path.home() / "Library" / "Caches"
+    else:
+        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "motion_splats"
+
+
+def numba_cache_dir(context=None) -> Path:
+    """The engine's compiled-kernel cache (``NUMBA_CACHE_DIR``): the Cache Folder when one
+    is set, else the platform cache. Never beside the engine's sources (an update replaces
+    them) nor in the extension's user folder (an uninstall deletes it); compiling the
+    kernels again costs the first run about a minute."""
+    prefs = get(context)
+    if prefs is not None and prefs.cache_dir:
+        return cache_dir(context) / "numba"
+    return platform_cache_dir() / "numba"
+
+
+def engine_env(context=None, installed: bool | None = None) -> dict:
+    """Environment for engine subprocesses (:func:`.bridge.child_env`).
+
+    An installed extension (package ``bl_ext.*``) gets ``NUMBA_CACHE_DIR`` =
+    :func:`numba_cache_dir`; a development checkout keeps Numba's default cache beside
+    its sources, which no extension update touches and which its other tools share.
+    """
+    from .bridge import child_env
+
+    if installed is None:
+        installed = ROOT_PACKAGE.startswith("bl_ext.")
+    return child_env({"NUMBA_CACHE_DIR": str(numba_cache_dir(context))} if installed else None)
+
+
 def device(context=None) -> str:
     prefs = get(context)
     return prefs.device.lower() if prefs is not None else "auto"
@@ -212,6 +262,10 @@ class MotionSplatsPreferences(bpy.types.AddonPreferences):
                                       subtype="FILE_PATH", default="")
     onnx_tracker: StringProperty(name="Tracker Model", description="Optional ONNX point tracker",
                                  subtype="FILE_PATH", default="")
+    results_dir: StringProperty(name="Results Folder",
+                                description="Where reconstructions of an unsaved .blend go (a saved file keeps "
+                                            "them beside itself). Empty: MotionSplats in your home folder",
+                                subtype="DIR_PATH", default="")
     cache_dir: StringProperty(name="Cache Folder",
                               description="Where priors and intermediate files are cached. Empty: the "
                                           "extension's user folder",
@@ -228,6 +282,9 @@ class MotionSplatsPreferences(bpy.types.AddonPreferences):
             resolved = engine_python(context)
             col.label(text=f"Automatic: {resolved or 'no interpreter found'}", icon="INFO")
         col.prop(self, "device")
+        col.prop(self, "results_dir")
+        if not self.results_dir:
+            col.label(text=f"Automatic: {results_dir(context)}", icon="INFO")
         col.prop(self, "cache_dir")
         if not self.cache_dir:
             col.label(text=f"Automatic: {cache_dir(context)}", icon="INFO")

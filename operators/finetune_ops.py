@@ -85,14 +85,18 @@ class MOTIONSPLATS_OT_finetune(bpy.types.Operator):
             return {"CANCELLED"}
         if self.send_edits:
             try:
-                exporters.send_edits(col)
+                sent = exporters.send_edits(col)
             except Exception as exc:  # user-facing: never a traceback in the UI
                 self.report({"ERROR"}, f"Cannot send the node edits: {exc}")
                 return {"CANCELLED"}
+            from .result_ops import report_sent
+
+            report_sent(self, sent)
         s = props_mod.settings(context)
         steps = self.steps or (s.finetune_steps if s is not None else 200)
         process = EngineProcess.for_engine(python, "finetune",
-                                           finetune_args(str(bundle), steps, preferences.device(context)))
+                                           finetune_args(str(bundle), steps, preferences.device(context)),
+                                           env=preferences.engine_env(context))
         job = jobs.start(JOB_KIND, process, label="Fine-tune", on_complete=_on_complete(col.name))
         if job.state == "failed":
             self.report({"ERROR"}, " ".join(job.error_summary()))

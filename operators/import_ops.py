@@ -9,7 +9,8 @@ from pathlib import Path
 import bpy
 from bpy.props import BoolProperty, StringProperty
 
-from ..addon import cameras
+from ..addon import cameras, footage
+from ..addon import properties as props_mod
 from ..engine.errors import EngineError
 
 
@@ -25,14 +26,21 @@ def _set_background(cam_obj, clip) -> None:
     bg.alpha = 1.0
 
 
-def import_footage(context, filepath: str, set_background: bool = True):
-    """Load ``filepath`` as a Movie Clip and set the scene up for it; returns the clip."""
-    scene = context.scene
-    clip = bpy.data.movieclips.load(filepath, check_existing=True)
+def _scene_state(scene) -> dict:
+    r = scene.render
+    return {"frames": f"{scene.frame_start}-{scene.frame_end}", "fps": f"{r.fps / r.fps_base:.4g} fps",
+            "resolution": f"{r.resolution_x}x{r.resolution_y} at {r.resolution_percentage}%",
+            "camera": scene.camera.name if scene.camera else "none"}
+
+
+def describe_changes(before: dict, after: dict) -> str:
+    """``"frames 1-250 -> 1-48, fps 24 fps -> 30 fps"`` for the entries that changed ("" if none)."""
+    return ", ".join(f"{k} {before[k]} -> {after[k]}" for k in before if before[k] != after[k])
+
+
+def match_scene_to_clip(scene, clip) -> None:
+    """Frame range, frame rate and resolution of ``scene`` from the Movie Clip."""
     w, h = int(clip.size[0]), int(clip.size[1])
-    if w <= 0 or h <= 0:
-        raise EngineError(f"Blender cannot read frames from {filepath}")
-    scene.active_clip = clip
     scene.frame_start = int(clip.frame_start)
     scene.frame_end = int(clip.frame_start) + max(int(clip.frame_duration), 1) - 1
     fps = float(clip.fps) if clip.fps else 0.0
@@ -46,6 +54,18 @@ def import_footage(context, filepath: str, set_background: bool = True):
     r = scene.render
     r.resolution_x, r.resolution_y, r.resolution_percentage = w, h, 100
     r.pixel_aspect_x = r.pixel_aspect_y = 1.0
+
+
+def import_footage(context, filepath: str, set_background: bool = True, match_scene: bool = True):
+    """Load ``filepath`` as a Movie Clip (and, with ``match_scene``, set the scene up for it); returns the clip."""
+    scene = context.scene
+    clip = bpy.data.movieclips.load(filepath, check_existing=True)
+    w, h = int(clip.size[0]), int(clip.size[1])
+    if w <= 0 or h <= 0:
+        raise EngineError(f"Blender cannot read frames from {filepath}")
+    scene.active_clip = clip
+    if match_scene:
+        match_scene_to_clip(scene, clip)
     cam = scene.camera
     if cam is None:
         data = bpy.data.cameras.new("MotionSplatsFootageCamera")
@@ -58,39 +78,71 @@ def import_footage(context, filepath: str, set_background: bool = True):
 
 
 class MOTIONSPLATS_OT_import_footage(bpy.types.Operator):
-    """Load a video or an image sequence as a Movie Clip and match the scene's frame range, frame rate,
-    resolution and camera background to it"""
+    """Load a video or an image sequence as a Movie Clip (and match the scene's frame range, frame rate and
+    resolution to it), or choose a dataset folder / clip manifest for Reconstruct to read"""
 
     bl_idname = "motion_splats.import_footage"
     bl_label = "Import Footage"
     bl_options = {"REGISTER", "UNDO"}
 
     filepath: StringProperty(subtype="FILE_PATH", options={"SKIP_SAVE"})
+    directory: StringProperty(subtype="DIR_PATH", options={"SKIP_SAVE", "HIDDEN"})
     filter_movie: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
     filter_image: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
     filter_folder: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
+    filter_json: BoolProperty(default=True, options={"HIDDEN", "SKIP_SAVE"})
     set_background: BoolProperty(name="Camera Background", default=True,
                                  description="Show the footage behind the active camera")
+    match_scene: BoolProperty(name="Match Scene", default=True,
+                              description="Set the scene's frame range, frame rate and resolution to the "
+                              "footage's (reported; Undo restores them)")
 
     def invoke(self, context, event):
         context.window_manager.fileselect_add(self)
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        path = bpy.path.abspath(self.filepath)
-        if not path or not Path(path).is_file():
-            self.report({"ERROR"}, f"Footage not found: {path or '(no file chosen)'}; pick a video or the first "
-                                   "image of a sequence")
-            return {"CANCELLED"}
+        path = bpy.path.abspath(self.filepath) if self.filepath else bpy.path.abspath(self.directory)
         try:
-            clip = import_footage(context, path, self.set_background)
+            kind, what = footage.classify(path) if path else (None, "")
+        except EngineError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        if kind is None:
+            self.report({"ERROR"}, "No footage chosen: pick a video, an image of a sequence or a dataset folder")
+            return {"CANCELLED"}
+        s = props_mod.settings(context)
+        if kind not in footage.MOVIE_KINDS:
+            # the engine reads it with its own cameras / splits: Reconstruct uses the path
+            if s is None:
+                self.report({"ERROR"}, "Motion Splats is not registered in this scene")
+                return {"CANCELLED"}
+            s.clip_path = path
+            s.source = "PATH"
+            self.report({"INFO"}, f"Reconstruct will read the {what} {path} (Source: Clip Path); the scene "
+                                  "is unchanged")
+            return {"FINISHED"}
+        if kind == "images":
+            path = str(clip_io_first_image(path))
+        before = _scene_state(context.scene)
+        try:
+            clip = import_footage(context, path, self.set_background, self.match_scene)
         except (RuntimeError, EngineError) as exc:
             self.report({"ERROR"}, f"Cannot load {Path(path).name}: {exc}")
             return {"CANCELLED"}
-        s = context.scene
-        self.report({"INFO"}, f"Footage '{clip.name}': {clip.size[0]}x{clip.size[1]}, frames "
-                              f"{s.frame_start}-{s.frame_end} at {s.render.fps / s.render.fps_base:.3g} fps")
+        if s is not None:
+            s.source = "MOVIE_CLIP"
+        changes = describe_changes(before, _scene_state(context.scene))
+        self.report({"INFO"}, f"Footage '{clip.name}' ({what}, {clip.size[0]}x{clip.size[1]}) is the Movie Clip "
+                              f"to reconstruct. Scene: {changes or 'unchanged'}")
         return {"FINISHED"}
+
+
+def clip_io_first_image(folder) -> Path:
+    """The first image of an image folder (Blender loads the sequence from it)."""
+    from ..engine.io.clip import list_images
+
+    return list_images(folder)[0]
 
 
 class MOTIONSPLATS_OT_import_tracking_camera(bpy.types.Operator):

@@ -2,16 +2,20 @@
 """Reconstruct / Resume: run ``python -m engine train`` on the scene's footage in the
 background and build the result bundle into the scene when it finishes.
 
-The clip is either the path in ``scene.motion_splats_reconstruct.clip_path`` (a dataset
-folder, a video, an image folder or a clip manifest) or, when that is empty, a clip
-manifest exported (``addon.exporters.write_clip_manifest``) from the active Movie Clip
-and the scene camera into a job folder under the cache dir. Nothing here blocks: the job
+The clip is what ``scene.motion_splats_result.source`` says, never a silent fallback:
+``PATH`` reads ``clip_path`` (a dataset folder, a video, an image folder or a clip
+manifest); ``MOVIE_CLIP`` exports a clip manifest (``addon.exporters``) of the active
+Movie Clip, with the scene camera only when it moves (else the engine solves the
+cameras and the artist is told why). Results go to ``<Results>/<clip name>/`` beside the
+.blend (:func:`results_root`), never into the extension's folder, which an uninstall
+deletes. Nothing here blocks: the job
 timer (``addon.jobs``) shows progress and runs the completion callback on the main thread.
 """
 
 from __future__ import annotations
 
-import time
+import re
+import uuid
 from pathlib import Path
 
 import bpy
@@ -43,18 +47,29 @@ def active_movieclip(context):
     return clip
 
 
-def new_job_dir(context) -> Path:
-    """A fresh folder under the cache dir for one reconstruction."""
-    base = preferences.cache_dir(context, create=True) / "jobs"
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    scene = bpy.path.clean_name(context.scene.name)
-    out = base / f"{scene}-{stamp}"
+def results_root(context) -> Path:
+    """The folder results go to: the scene's Results setting (relative paths beside the
+    .blend), or the preferences' folder while the .blend is unsaved."""
+    settings = reconstruct_settings(context)
+    out = settings.output_dir if settings is not None else ""
+    if not out or (out.startswith("//") and not bpy.data.filepath):
+        return preferences.results_dir(context)
+    return Path(bpy.path.abspath(out))
+
+
+def result_paths(context, clip_name: str) -> tuple[Path, Path]:
+    """``(bundle_dir, manifest_path)`` of a new result named after the clip: ``<root>/<clip>``
+    and ``<root>/<clip>.clip.json`` (``<clip>-2`` ... when taken; nothing is overwritten)."""
+    root = results_root(context)
+    root.mkdir(parents=True, exist_ok=True)
+    stem = bpy.path.clean_name(Path(clip_name).stem or clip_name) or "clip"
     n = 1
-    while out.exists():
+    while True:
+        name = stem if n == 1 else f"{stem}-{n}"
+        bundle, manifest = root / name, root / f"{name}.clip.json"
+        if not bundle.exists() and not manifest.exists():
+            return bundle, manifest
         n += 1
-        out = base / f"{scene}-{stamp}-{n}"
-    out.mkdir(parents=True)
-    return out
 
 
 def train_args(clip: str, bundle: str, preset: str, *, resume: bool = False, steps: int = 0,
@@ -76,30 +91,121 @@ def train_args(clip: str, bundle: str, preset: str, *, resume: bool = False, ste
     return args
 
 
-def _on_complete(scene_name: str):
-    """Completion callback: build the bundle into the scene it was started from."""
+#: Scene custom property naming the reconstructions started from it (see :func:`target_scene`).
+TOKEN_KEY = "ms_job_tokens"
+
+
+def mark_scene(scene) -> str:
+    """Tag ``scene`` with a fresh token so the completion callback finds this very scene
+    (a scene of the same name in another file is not it)."""
+    token = uuid.uuid4().hex
+    tokens = str(scene.get(TOKEN_KEY, "")).split()[-7:]
+    scene[TOKEN_KEY] = " ".join(tokens + [token])
+    return token
+
+
+def target_scene(token: str):
+    """The scene tagged with ``token`` in the open file, or None (closed, reloaded, deleted)."""
+    for scene in bpy.data.scenes:
+        if token in str(scene.get(TOKEN_KEY, "")).split():
+            return scene
+    return None
+
+
+def _on_complete(token: str):
+    """Completion callback: build the bundle into the scene it was started from, only if
+    that scene is still open; otherwise say where the result is."""
 
     def done(job):
         if job.state != "finished":
             return
         bundle = (job.result or {}).get("bundle") or job.process.argv[job.process.argv.index("--out") + 1]
-        scene = bpy.data.scenes.get(scene_name) or bpy.context.scene
+        scene = target_scene(token)
+        if scene is None:
+            job.callback_error = (f"The result was not built: the scene it was started from is no longer open. "
+                                  f"Import it with Import Result Bundle from {bundle}")
+            return
         result = getattr(scene, props_mod.SCENE_ATTR, None)
         density, preview, with_rig = 1.0, "POINTS", True
         if result is not None:
             density, preview, with_rig = result.density, result.preview, result.with_rig
         from ..addon.build import build_bundle_into_scene
 
-        ctx = bpy.context
-        if ctx.scene != scene:
-            with ctx.temp_override(scene=scene):
-                build_bundle_into_scene(bpy.context, bundle, density=density, preview=preview, with_rig=with_rig)
-        else:
-            build_bundle_into_scene(ctx, bundle, density=density, preview=preview, with_rig=with_rig)
+        view_layer = scene.view_layers[0] if bpy.context.scene != scene else bpy.context.view_layer
+        with bpy.context.temp_override(scene=scene, view_layer=view_layer):
+            res = build_bundle_into_scene(bpy.context, bundle, density=density, preview=preview, with_rig=with_rig)
         if result is not None:
             result.bundle_path = str(bundle)
+        job.logs.append(f"[info] Built '{res['collection'].name}'; use Set Up Render to render it from its camera")
+        for line in res["scene_changes"]:
+            job.logs.append(f"[info] Scene {line}")
+        push_undo(f"Motion Splats: build {res['collection'].name}")
 
     return done
+
+
+def push_undo(message: str) -> None:
+    """An undo step for a change made from a timer (no operator pushes one there)."""
+    try:
+        bpy.ops.ed.undo_push(message=message)
+    except RuntimeError:  # no window (background mode): nothing to undo into
+        pass
+
+
+def footage_cameras(context, movieclip, use_scene_camera: bool) -> tuple[list | None, str]:
+    """Cameras to send with the Movie Clip, and what to tell the artist about them.
+
+    The scene camera is sent only when it moves over the clip: a factory Camera, or the
+    footage camera Import Footage creates, exports identical poses, and training on them
+    is training on a guess. Then (and without a camera) the engine solves the cameras
+    from the footage.
+    """
+    from ..addon import exporters, footage
+
+    cam = context.scene.camera
+    if not use_scene_camera:
+        return None, "Cameras: solved by the engine (Use Scene Camera is off)"
+    if cam is None or cam.type != "CAMERA":
+        return None, "Cameras: the scene has no camera, so the engine solves them from the footage"
+    cams = exporters.clip_cameras(context.scene, movieclip, cam)
+    if not footage.cameras_move([c["w2c"] for c in cams]):
+        solved = movieclip.tracking.reconstruction.is_valid
+        how = ("the clip has a camera solve: use Import Tracked Camera to animate a camera with it" if solved else
+               "to give it real cameras, track and solve the camera in the Movie Clip Editor, then "
+               "Import Tracked Camera")
+        return None, (f"Camera '{cam.name}' does not move over the clip (never tracked or animated), so it is "
+                      f"not sent: the engine solves the cameras from the footage; {how}")
+    return cams, f"Cameras: scene camera '{cam.name}' ({len(cams)} frames)"
+
+
+def _export_footage(op, context, settings):
+    """``(clip_path, bundle_dir, camera_note)`` for the chosen source, or None after a report."""
+    from ..addon.exporters import write_clip_manifest
+    from ..engine.errors import EngineError
+
+    if settings.source == "PATH":
+        clip = bpy.path.abspath(settings.clip_path) if settings.clip_path else ""
+        if not clip or not Path(clip).exists():
+            op.report({"ERROR"}, f"Clip Path not found: {clip or '(empty)'}; choose a dataset folder, video or "
+                                 "clip manifest, or set Source to Movie Clip")
+            return None
+        bundle, _ = result_paths(context, Path(clip).name)
+        return clip, bundle, "Cameras: read by the engine from the clip path (solved when it has none)"
+    movieclip = active_movieclip(context)
+    if movieclip is None:
+        op.report({"ERROR"}, "No footage: use Import Footage to load a Movie Clip, or set Source to Clip Path")
+        return None
+    try:
+        cams, note = footage_cameras(context, movieclip, settings.use_scene_camera)
+        name = Path(movieclip.name).stem
+        if movieclip.source == "SEQUENCE":  # "shot_0001.png" -> "shot"
+            name = re.sub(r"[_.\-]*\d+$", "", name) or name
+        bundle, manifest = result_paths(context, name)
+        write_clip_manifest(manifest, context.scene, movieclip, with_cameras=False, cameras=cams)
+    except (EngineError, OSError, ValueError) as exc:
+        op.report({"ERROR"}, f"Cannot export the clip manifest: {exc}")
+        return None
+    return str(manifest), bundle, note
 
 
 def start_training(op, context, *, resume: bool):
@@ -111,6 +217,7 @@ def start_training(op, context, *, resume: bool):
     python = preferences.engine_python_or_report(context, op)
     if not python:
         return {"CANCELLED"}
+    note = ""
     if resume:
         bundle = bpy.path.abspath(settings.bundle_path) if settings.bundle_path else ""
         clip = bpy.path.abspath(settings.last_clip) if settings.last_clip else ""
@@ -123,43 +230,32 @@ def start_training(op, context, *, resume: bool):
         preset = settings.last_preset or settings.preset
     else:
         preset = settings.preset
-        clip = bpy.path.abspath(settings.clip_path) if settings.clip_path else ""
-        if clip and not Path(clip).exists():
-            op.report({"ERROR"}, f"Clip not found: {clip}")
-            return {"CANCELLED"}
         try:
-            job_dir = new_job_dir(context)
+            found = _export_footage(op, context, settings)
         except OSError as exc:
-            op.report({"ERROR"}, f"Cannot create a job folder in the cache dir: {exc}")
+            op.report({"ERROR"}, f"Cannot create the results folder {results_root(context)}: {exc}; set "
+                                 "Results to a writable folder")
             return {"CANCELLED"}
-        if not clip:
-            movieclip = active_movieclip(context)
-            if movieclip is None:
-                op.report({"ERROR"}, "No footage: set a clip path, or import footage as a Movie Clip first")
-                return {"CANCELLED"}
-            from ..addon.exporters import write_clip_manifest
-            from ..engine.errors import EngineError
-
-            try:
-                write_clip_manifest(job_dir / "clip.json", context.scene, movieclip,
-                                    with_cameras=settings.use_scene_camera)
-            except (EngineError, OSError, ValueError) as exc:
-                op.report({"ERROR"}, f"Cannot export the clip manifest: {exc}")
-                return {"CANCELLED"}
-            clip = str(job_dir / "clip.json")
-        bundle = str(job_dir / "bundle")
+        if found is None:
+            return {"CANCELLED"}
+        clip, bundle, note = found
+        bundle = str(bundle)
     args = train_args(clip, bundle, preset, resume=resume, steps=settings.steps,
                       device=preferences.device(context), models=preferences.onnx_models(context))
-    process = EngineProcess.for_engine(python, "train", args)
+    process = EngineProcess.for_engine(python, "train", args, env=preferences.engine_env(context))
     label = "Resume" if resume else "Reconstruct"
-    job = jobs.start(JOB_KIND, process, label=label, on_complete=_on_complete(context.scene.name))
+    job = jobs.start(JOB_KIND, process, label=label, on_complete=_on_complete(mark_scene(context.scene)))
+    if note:
+        job.logs.append(f"[info] {note}")
     settings.bundle_path = bundle
     settings.last_clip = clip
     settings.last_preset = preset
     if job.state == "failed":
         op.report({"ERROR"}, " ".join(job.error_summary()))
         return {"CANCELLED"}
-    op.report({"INFO"}, f"{label}: training {Path(clip).name} into {bundle}")
+    static = "does not move" in note
+    op.report({"WARNING"} if static else {"INFO"}, f"{label}: training {Path(clip).name} into {bundle}"
+              + (f". {note}" if note else ""))
     return {"FINISHED"}
 
 

@@ -9,7 +9,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper
 
-from ..addon import build, exporters, properties
+from ..addon import build, exporters, properties, render_setup
 from ..engine.errors import InputError
 
 
@@ -61,8 +61,10 @@ class MOTIONSPLATS_OT_import_bundle(bpy.types.Operator):
         s = properties.settings(context)
         if s is not None:
             s.bundle_path = str(folder)
+        changes = "; ".join(res["scene_changes"])
         self.report({"INFO"}, f"Built {len(res['empties'])} nodes and {res['gaussians']} Gaussians in "
-                              f"{res['timings']['total']:.1f} s into '{res['collection'].name}'")
+                              f"{res['timings']['total']:.1f} s into '{res['collection'].name}'"
+                              + (f". Scene: {changes}" if changes else ""))
         return {"FINISHED"}
 
 
@@ -72,20 +74,33 @@ class _ResultOperator:
         return build.bundle_collection(context) is not None
 
 
+def report_sent(op, sent) -> None:
+    """One report line for :func:`exporters.send_edits`'s result."""
+    if sent.path is None:
+        op.report({"INFO"}, "No node was edited: nodes.npz is unchanged")
+        return
+    msg = (f"Sent {len(sent.edited)} edited node(s) to {sent.path}; the previous file is in {sent.backup.parent}")
+    if sent.rekeyed:
+        msg += (". The key frames changed, and the bundle's nodes share key frames, so every node was re-keyed "
+                "(unedited curves keep their shape)")
+    op.report({"INFO"}, msg)
+
+
 class MOTIONSPLATS_OT_send_edits(_ResultOperator, bpy.types.Operator):
-    """Write the node Empties' edited F-curves back into the bundle's nodes.npz"""
+    """Write the edited node Empties' F-curves into the bundle's nodes.npz (only the edited nodes change;
+    the previous file is backed up into the bundle's backups folder)"""
 
     bl_idname = "motion_splats.send_edits"
     bl_label = "Send Edits to Bundle"
-    bl_options = {"REGISTER"}
+    bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
         col = build.bundle_collection(context)
         try:
-            path = exporters.send_edits(col)
+            sent = exporters.send_edits(col)
         except Exception as exc:
             return _fail(self, exc)
-        self.report({"INFO"}, f"Wrote edited node splines to {path}")
+        report_sent(self, sent)
         return {"FINISHED"}
 
 
@@ -182,5 +197,29 @@ class MOTIONSPLATS_OT_set_preview(_ResultOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (MOTIONSPLATS_OT_import_bundle, MOTIONSPLATS_OT_send_edits, MOTIONSPLATS_OT_export_ply,
+class MOTIONSPLATS_OT_setup_render(_ResultOperator, bpy.types.Operator):
+    """Render the result like the engine: its camera as scene camera (with its resolution), Cycles with
+    the ellipsoid preview, Standard colour management, a black world, other objects hidden from render.
+    Every change is reported; Undo restores them"""
+
+    bl_idname = "motion_splats.setup_render"
+    bl_label = "Set Up Render"
+    bl_options = {"REGISTER", "UNDO"}
+
+    ellipsoids: BoolProperty(name="Ellipsoid Preview", default=True,
+                             description="Rebuild the preview as ellipsoids, the mode made for Cycles")
+    hide_others: BoolProperty(name="Hide Other Objects", default=True,
+                              description="Hide renderable objects outside the result from render")
+
+    def execute(self, context):
+        col = build.bundle_collection(context)
+        try:
+            changes = render_setup.setup_render(context, col, self.ellipsoids, self.hide_others)
+        except Exception as exc:
+            return _fail(self, exc)
+        self.report({"INFO"}, f"Set up render for '{col.name}': " + ("; ".join(changes) or "nothing to change"))
+        return {"FINISHED"}
+
+
+CLASSES = (MOTIONSPLATS_OT_import_bundle, MOTIONSPLATS_OT_setup_render, MOTIONSPLATS_OT_send_edits, MOTIONSPLATS_OT_export_ply,
            MOTIONSPLATS_OT_export_camera_path, MOTIONSPLATS_OT_export_clip_manifest, MOTIONSPLATS_OT_set_preview)

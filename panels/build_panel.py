@@ -34,6 +34,7 @@ class MOTIONSPLATS_PT_result(bpy.types.Panel):
             box.label(text=coll.name, icon="OUTLINER_COLLECTION")
             box.label(text=str(coll.get("ms_bundle", "")))
             box.operator("motion_splats.set_preview", icon="FILE_REFRESH")
+            box.operator("motion_splats.setup_render", icon="RESTRICT_RENDER_OFF")
             box.operator("motion_splats.send_edits", icon="EXPORT")
             row = box.row(align=True)
             if s is not None:

@@ -28,9 +28,16 @@ class _ReconstructPanel:
         if s is None:
             return
         col = layout.column(align=True)
-        col.prop(s, "clip_path")
+        col.row(align=True).prop(s, "source", expand=True)
+        if s.source == "PATH":
+            col.prop(s, "clip_path")
+        else:
+            clip = context.scene.active_clip
+            col.label(text=f"Movie Clip: {clip.name}" if clip else "No Movie Clip: use Import Footage",
+                      icon="FILE_MOVIE" if clip else "ERROR")
+            col.prop(s, "use_scene_camera")
         col.prop(s, "preset")
-        col.prop(s, "use_scene_camera")
+        col.prop(s, "output_dir")
         header, body = layout.panel("MOTIONSPLATS_reconstruct_advanced", default_closed=True)
         header.label(text="Advanced")
         if body is not None:

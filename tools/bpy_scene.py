@@ -74,6 +74,8 @@ def render_cycles(bundle_dir, frames, out_dir, samples: int = 16, blend_path=Non
     info = build_scene(bundle_dir, preview="ELLIPSOIDS")
     try:
         scene = bpy.context.scene
+        col = next(c for c in bpy.data.collections if "ms_bundle" in c)
+        ext.addon.render_setup.setup_render(bpy.context, col)  # camera, resolution, colour management
         scene.render.engine = "CYCLES"
         scene.cycles.samples = samples
         scene.cycles.use_denoising = False

@@ -170,7 +170,8 @@ def test_camera_matches_bundle(extension, empty_scene, bundle):
     build = extension.addon.build
     res = build.build_bundle_into_scene(bpy.context, bundle.path, with_rig=False)
     scene, cam = bpy.context.scene, res["camera"]
-    assert scene.camera == cam
+    assert scene.camera == cam  # an empty scene had none
+    extension.addon.render_setup.setup_render(bpy.context, res["collection"], ellipsoids=False)  # resolution
     X = np.array([0.3, -0.4, 0.5])
     for c in bundle.scene["cameras"]:
         f = bio.frame_of_time(bundle.scene, c["time"])
@@ -231,7 +232,8 @@ def test_ellipsoid_alpha_is_gaussian_along_the_ray(extension, empty_scene, tmp_p
     K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
     cam = {"w2c": w2c, "K": K, "width": W, "height": H, "time": 0.0}
     bio.save_bundle(tmp_path / "b", bio.new_scene(1, 2, 24, [cam]), nodes, gs)
-    build.build_bundle_into_scene(bpy.context, tmp_path / "b", preview="ELLIPSOIDS")
+    res = build.build_bundle_into_scene(bpy.context, tmp_path / "b", preview="ELLIPSOIDS")
+    extension.addon.render_setup.setup_render(bpy.context, res["collection"])  # camera resolution, Standard view
     scene = bpy.context.scene
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"

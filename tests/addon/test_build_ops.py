@@ -80,6 +80,8 @@ def test_export_camera_path_matches_bundle(registered, tmp_path):
     bdir = tmp_path / "bundle"
     b = make_bundle(bdir, n=10, g=100)
     assert bpy.ops.motion_splats.import_bundle(directory=str(bdir), with_rig=False) == {"FINISHED"}
+    # the render size follows the result's camera after Set Up Render (building leaves it alone)
+    assert bpy.ops.motion_splats.setup_render(ellipsoids=False) == {"FINISHED"}
     out = tmp_path / "path.json"
     assert bpy.ops.motion_splats.export_camera_path(filepath=str(out)) == {"FINISHED"}
     data = json.loads(out.read_text())

@@ -186,7 +186,7 @@ def test_import_footage_sets_scene_up(extension, registered, tmp_path):
     assert bpy.ops.motion_splats.import_tracking_camera.poll()
     with pytest.raises(RuntimeError, match="no camera solve"):
         bpy.ops.motion_splats.import_tracking_camera()
-    with pytest.raises(RuntimeError, match="Footage not found"):
+    with pytest.raises(RuntimeError, match="footage not found"):
         bpy.ops.motion_splats.import_footage(filepath=str(tmp_path / "nope.mp4"))
 
 

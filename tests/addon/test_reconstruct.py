@@ -30,6 +30,7 @@ def tiny_clip(tmp_path_factory):
 def _setup(prefs, tmp_path, clip, steps, python=None):
     prefs.engine_python = str(python or VENV_PYTHON)
     prefs.cache_dir = str(tmp_path / "cache")
+    prefs.results_dir = str(tmp_path / "results")
     prefs.device = "CPU"
     s = bpy.context.scene.motion_splats_result
     s.clip_path = str(clip)
@@ -75,7 +76,9 @@ def test_reconstruct_builds_result(extension, registered, tmp_path, tiny_clip, c
     assert "train" in stages and steps_seen
     bundle = Path(job.result["bundle"])
     assert (bundle / "scene.json").exists() and (bundle / "nodes.npz").exists()
-    assert bundle.is_relative_to(tmp_path / "cache")
+    # results are the artist's: beside the .blend / in the results folder, named after the clip,
+    # never in the extension's folder (which an uninstall or update deletes)
+    assert bundle == tmp_path / "results" / tiny_clip.name
     assert Path(s.bundle_path) == bundle and s.last_clip == str(tiny_clip) and s.last_preset == "preview"
     col = extension.addon.build.bundle_collection(bpy.context)
     assert col is not None
@@ -145,15 +148,17 @@ def extension_collection_absent():
 def test_no_footage_reports_error(registered, tmp_path, clean_jobs):
     _setup(registered, tmp_path, "", steps=1)
     bpy.context.scene.motion_splats_result.clip_path = ""
+    bpy.context.scene.motion_splats_result.source = "MOVIE_CLIP"
     with pytest.raises(RuntimeError, match="No footage"):
         bpy.ops.motion_splats.reconstruct()
     bpy.context.scene.motion_splats_result.clip_path = str(tmp_path / "missing.mp4")
-    with pytest.raises(RuntimeError, match="Clip not found"):
+    with pytest.raises(RuntimeError, match="Clip Path not found"):
         bpy.ops.motion_splats.reconstruct()
 
 
 def test_reconstruct_from_movieclip_exports_manifest(extension, registered, tmp_path, tiny_clip, clean_jobs):
-    """No clip path: the active Movie Clip + the scene camera go to a clip manifest in the job folder."""
+    """Source Movie Clip: the active Movie Clip + the (moving) scene camera go to a clip manifest
+    named after the clip in the results folder."""
     import json
 
     import numpy as np
@@ -179,7 +184,7 @@ def test_reconstruct_from_movieclip_exports_manifest(extension, registered, tmp_
     assert bpy.ops.motion_splats.reconstruct() == {"FINISHED"}
     job = jobs.latest("train")
     manifest = Path(job.process.argv[job.process.argv.index("train") + 2])
-    assert manifest.name == "clip.json" and manifest.exists()
+    assert manifest.name == "left.clip.json" and manifest.exists()
     data = json.loads(manifest.read_text())
     assert len(data.get("cameras") or []) == len(w2cs)
     assert _pump_until(jobs, lambda: job.completed, 180)
