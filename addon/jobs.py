@@ -53,6 +53,8 @@ class Job:
     state: str = "running"
     completed: bool = False  # completion callback has run
     callback_error: str | None = None
+    #: scene work the completion callback left for when Blender is in Object Mode (see :func:`defer`)
+    pending: Callable[[], None] | None = None
     started: float = field(default_factory=time.monotonic)
     ended: float | None = None
 
@@ -182,6 +184,7 @@ def drain() -> bool:
     changed = False
     for job in list(_JOBS.values()):
         if job.completed:
+            changed |= _run_pending(job)
             continue
         events = job.process.poll_events()
         for event in events:
@@ -207,10 +210,34 @@ def drain() -> bool:
     return changed
 
 
+def object_mode() -> bool:
+    """Whether scene building (armature edit bones need a mode switch) may run now."""
+    return getattr(bpy.context, "mode", "OBJECT") in ("OBJECT", None)
+
+
+def defer(job: Job, work: Callable[[], None], why: str) -> None:
+    """Run ``work`` from :func:`drain` once Blender is in Object Mode (a timer must not
+    switch the artist out of Edit or Pose Mode); ``why`` goes to the job's log."""
+    job.pending = work
+    job.logs.append(f"[info] {why}")
+    ensure_timer()
+
+
+def _run_pending(job: Job) -> bool:
+    if job.pending is None or not object_mode():
+        return False
+    work, job.pending = job.pending, None
+    try:
+        work()
+    except Exception as exc:  # noqa: BLE001 (a builder bug must not kill the timer)
+        job.callback_error = f"Building the result failed: {type(exc).__name__}: {exc}"
+    return True
+
+
 def wait(job: Job, timeout: float = 60.0, step: float = 0.05) -> Job:
     """Pump :func:`drain` until ``job`` completed (tests/scripts; blocks)."""
     deadline = time.monotonic() + timeout
-    while not job.completed:
+    while not job.completed or (job.pending is not None and object_mode()):
         drain()
         if job.completed:
             break
@@ -242,8 +269,8 @@ def _timer():
         drain()
     except Exception as exc:  # noqa: BLE001 (keep the pump alive)
         print(f"Motion Splats: job update failed: {type(exc).__name__}: {exc}")
-    # Keep ticking while anything runs; stop otherwise (start() re-arms the timer).
-    return INTERVAL_S if running() else None
+    # Keep ticking while anything runs or waits to be built; stop otherwise (start() re-arms it).
+    return INTERVAL_S if running() or any(j.pending for j in _JOBS.values()) else None
 
 
 def ensure_timer() -> None:

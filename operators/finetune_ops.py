@@ -12,6 +12,7 @@ rebuilt from the bundle; the node Empties and their F-curves are kept as they ar
 
 from __future__ import annotations
 
+import uuid
 from pathlib import Path
 
 import bpy
@@ -23,6 +24,8 @@ from ..addon.bridge import EngineProcess
 from ..engine import bundle as bundle_io
 
 JOB_KIND = "finetune"
+#: Collection custom property naming the fine-tune that will refresh it.
+TOKEN_KEY = "ms_finetune_token"
 #: jobs that write the same bundle: one at a time
 BUSY_KINDS = ("train", JOB_KIND)
 
@@ -35,13 +38,20 @@ def finetune_args(bundle: str, steps: int, device: str = "auto") -> list[str]:
     return args
 
 
-def _on_complete(collection_name: str):
-    """Rebuild the collection's Gaussian preview from the fine-tuned bundle (Empties kept)."""
+def _on_complete(token: str):
+    """Rebuild the Gaussian preview of the collection tagged ``token`` from the fine-tuned
+    bundle (Empties kept); nothing when that collection is gone (deleted, another file)."""
 
     def done(job):
         if job.state != "finished":
             return
-        col = bpy.data.collections.get(collection_name)
+        if not jobs.object_mode():
+            jobs.defer(job, lambda: refresh(job), "Finished: the preview refreshes when you return to Object Mode")
+            return
+        refresh(job)
+
+    def refresh(job):
+        col = next((c for c in bpy.data.collections if c.get(TOKEN_KEY) == token), None)
         if col is None or "ms_bundle" not in col:
             return  # the result was deleted meanwhile (or another file loaded): nothing to refresh
         with_rig = any("ms_rig" in o for o in col.objects)  # rebuild what was built
@@ -97,7 +107,9 @@ class MOTIONSPLATS_OT_finetune(bpy.types.Operator):
         process = EngineProcess.for_engine(python, "finetune",
                                            finetune_args(str(bundle), steps, preferences.device(context)),
                                            env=preferences.engine_env(context))
-        job = jobs.start(JOB_KIND, process, label="Fine-tune", on_complete=_on_complete(col.name))
+        token = uuid.uuid4().hex
+        col[TOKEN_KEY] = token  # a collection of the same name in another file is not this one
+        job = jobs.start(JOB_KIND, process, label="Fine-tune", on_complete=_on_complete(token))
         if job.state == "failed":
             self.report({"ERROR"}, " ".join(job.error_summary()))
             return {"CANCELLED"}

@@ -114,34 +114,44 @@ def target_scene(token: str):
 
 def _on_complete(token: str):
     """Completion callback: build the bundle into the scene it was started from, only if
-    that scene is still open; otherwise say where the result is."""
+    that scene is still open (otherwise say where the result is), and only in Object
+    Mode (otherwise the build waits for it: see :func:`addon.jobs.defer`)."""
 
     def done(job):
         if job.state != "finished":
             return
         bundle = (job.result or {}).get("bundle") or job.process.argv[job.process.argv.index("--out") + 1]
-        scene = target_scene(token)
-        if scene is None:
-            job.callback_error = (f"The result was not built: the scene it was started from is no longer open. "
-                                  f"Import it with Import Result Bundle from {bundle}")
+        if not jobs.object_mode():
+            jobs.defer(job, lambda: build_result(job, token, bundle),
+                       "Finished: the result is built when you return to Object Mode")
             return
-        result = getattr(scene, props_mod.SCENE_ATTR, None)
-        density, preview, with_rig = 1.0, "POINTS", True
-        if result is not None:
-            density, preview, with_rig = result.density, result.preview, result.with_rig
-        from ..addon.build import build_bundle_into_scene
-
-        view_layer = scene.view_layers[0] if bpy.context.scene != scene else bpy.context.view_layer
-        with bpy.context.temp_override(scene=scene, view_layer=view_layer):
-            res = build_bundle_into_scene(bpy.context, bundle, density=density, preview=preview, with_rig=with_rig)
-        if result is not None:
-            result.bundle_path = str(bundle)
-        job.logs.append(f"[info] Built '{res['collection'].name}'; use Set Up Render to render it from its camera")
-        for line in res["scene_changes"]:
-            job.logs.append(f"[info] Scene {line}")
-        push_undo(f"Motion Splats: build {res['collection'].name}")
+        build_result(job, token, bundle)
 
     return done
+
+
+def build_result(job, token: str, bundle: str) -> None:
+    """Build ``bundle`` into the scene tagged ``token``; notes go to the job's log."""
+    scene = target_scene(token)
+    if scene is None:
+        job.callback_error = (f"The result was not built: the scene it was started from is no longer open. "
+                              f"Import it with Import Result Bundle from {bundle}")
+        return
+    result = getattr(scene, props_mod.SCENE_ATTR, None)
+    density, preview, with_rig = 1.0, "POINTS", True
+    if result is not None:
+        density, preview, with_rig = result.density, result.preview, result.with_rig
+    from ..addon.build import build_bundle_into_scene
+
+    view_layer = scene.view_layers[0] if bpy.context.scene != scene else bpy.context.view_layer
+    with bpy.context.temp_override(scene=scene, view_layer=view_layer):
+        res = build_bundle_into_scene(bpy.context, bundle, density=density, preview=preview, with_rig=with_rig)
+    if result is not None:
+        result.bundle_path = str(bundle)
+    job.logs.append(f"[info] Built '{res['collection'].name}'; use Set Up Render to render it from its camera")
+    for line in res["scene_changes"]:
+        job.logs.append(f"[info] Scene {line}")
+    push_undo(f"Motion Splats: build {res['collection'].name}")
 
 
 def push_undo(message: str) -> None:

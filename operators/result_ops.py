@@ -143,8 +143,17 @@ class MOTIONSPLATS_OT_export_camera_path(ExportHelper, bpy.types.Operator):
         return {"FINISHED"}
 
 
+#: The last items of :func:`_clip_items`. Blender keeps only pointers to the strings a
+#: dynamic EnumProperty callback returns, so Python must keep them alive (else garbage
+#: labels or a crash, as the EnumProperty documentation warns).
+_CLIP_ITEMS: list = []
+
+
 def _clip_items(self, context):
-    return [(c.name, c.name, c.filepath) for c in bpy.data.movieclips] or [("", "(no movie clips)", "")]
+    items = [(c.name, c.name, c.filepath) for c in bpy.data.movieclips] or [("", "(no movie clips)", "")]
+    if items != _CLIP_ITEMS:
+        _CLIP_ITEMS[:] = items
+    return _CLIP_ITEMS
 
 
 class MOTIONSPLATS_OT_export_clip_manifest(ExportHelper, bpy.types.Operator):
