@@ -9,6 +9,8 @@ with OpenCV):
 * a node allocation overlay: node positions at one frame's time projected into that
   frame, coloured by ``p_dyn`` (blue = static, red = dynamic);
 * metrics (initial vs final held-out eval from ``stats``, plus ``engine eval`` results);
+* the camera path and, for a solved clip, the camera model chosen and why
+  (:mod:`engine.report_camera`);
 * the training config.
 
 Used by ``python -m engine train`` (at the end) and ``python -m engine report``.
@@ -189,6 +191,10 @@ def write_report(bundle_dir, out_html=None, eval_result=None, clip_path=None, de
     parts.append("<h2>Priors</h2>")
     parts.append(_table(_prior_rows(scene.get("priors") or {}), ["prior", "backend", "model", "sha256", "licence"])
                  if scene.get("priors") else "<p><em>not recorded (bundle written before the model manager)</em></p>")
+
+    from .report_camera import camera_path_section
+
+    parts.append(camera_path_section(scene))
 
     # config
     parts.append("<h2>Config</h2>")
