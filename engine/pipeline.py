@@ -35,6 +35,8 @@ class PreparedClip:
     priors : the object returned by :func:`engine.priors.compute_priors`.
     frame_numbers : (F,) scene frame numbers; fps; extent; source path.
     clip_index : (F,) index of each frame in the source clip (for evaluation against it).
+    camera_solve : scene.json ``camera_solve`` record when the engine solved the cameras
+        (:func:`engine.io.solve_select.summary`: model, why, quality), else None.
     """
 
     frames: np.ndarray
@@ -49,6 +51,7 @@ class PreparedClip:
     extent: float
     source: str
     clip_index: np.ndarray | None = None
+    camera_solve: dict | None = None
 
 
 def load_frames_at_width(clip, width: int, reporter: Reporter | None = None, max_frames: int = 0):
@@ -116,11 +119,13 @@ def node_arrays_from(nodeset) -> B.NodeArrays:
 def open_clip(path, reporter: Reporter | None = None, solve: bool = True, fov_deg: float | None = None, **options):
     """Read a clip (any supported layout); solve cameras with COLMAP when it has none.
 
-    The solve (:func:`engine.io.solve.solve_cameras`) sees at most 60 evenly spaced frames (the others get
-    interpolated poses), masks moving regions with the motion prior, retries with global SfM when
-    incremental SfM cannot initialise (a panning camera), and falls back to a fixed-centre camera
-    (static or rotation-only, ``fov_deg`` across the long side, default 60) with a warning when the
-    footage has no usable parallax.
+    The solve (:func:`engine.io.solve.solve_cameras`, deterministic: same clip, same cameras) sees at
+    most 60 evenly spaced frames (the others get interpolated poses), masks moving regions with the
+    motion prior, and chooses its model by evidence: a fixed-centre camera (static or rotation-only,
+    ``fov_deg`` across the long side, default 60) when the static matches show no parallax, else SfM
+    (incremental, global when incremental cannot initialise) that must pass plausibility checks, with
+    the fixed centre as the fallback. One line announces the model and why; scene.json records it
+    (``camera_solve``).
     """
     from .io import load_clip
 
@@ -177,7 +182,15 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
                         frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
                         extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""),
-                        clip_index=np.asarray(idx, dtype=np.int64))
+                        clip_index=np.asarray(idx, dtype=np.int64), camera_solve=_camera_solve_record(clip))
+
+
+def _camera_solve_record(clip) -> dict | None:
+    """The scene.json ``camera_solve`` record of a clip whose cameras the engine solved (else None)."""
+    from .io.solve_select import summary
+
+    meta = clip.meta if isinstance(clip.meta, dict) else {}
+    return summary(meta["solve"]) if "solve" in meta else None
 
 
 def frame_numbers(clip, times: np.ndarray) -> np.ndarray:
@@ -272,7 +285,12 @@ def bundle_scene(prep: PreparedClip, cfg: TrainConfig, **extra) -> dict:
             for i in range(len(prep.times))]
     return B.new_scene(int(prep.frame_numbers.min()), int(prep.frame_numbers.max()), prep.fps, cams,
                        config=cfg.to_dict(), extent=prep.extent, source={"clip": prep.source, "width": int(w)},
-                       priors=getattr(prep.priors, "sources", {}), **extra)
+                       priors=getattr(prep.priors, "sources", {}), **_solve_extra(prep), **extra)
+
+
+def _solve_extra(prep: PreparedClip) -> dict:
+    """``{"camera_solve": ...}`` for scene.json when the engine solved the cameras, else ``{}``."""
+    return {"camera_solve": prep.camera_solve} if getattr(prep, "camera_solve", None) else {}
 
 
 def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None = None, resume: bool = False,
@@ -303,7 +321,7 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
     data = training_data(prep, device)
     trainer = Trainer(data, nodes, cfg, out_dir, reporter, resume=resume,
                       scene_extra={"source": {"clip": prep.source, "width": int(prep.frames.shape[2])},
-                                   "priors": prep.priors.sources})
+                                   "priors": prep.priors.sources, **_solve_extra(prep)})
     return trainer.run()
 
 

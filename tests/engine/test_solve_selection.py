@@ -89,6 +89,13 @@ def test_fixed_camera_with_moving_content_never_translates(tmp_path):
     assert [lvl for lvl, m in rep.messages if m == lines[0]] == ["warning"]
     np.testing.assert_array_equal(a.w2c, b.w2c)  # deterministic
     np.testing.assert_array_equal(a.K, b.K)
+    # scene.json records the choice (engine.pipeline passes it on as ``camera_solve``)
+    from engine import bundle as B
+    from engine.pipeline import _camera_solve_record
+
+    rec = json.loads(json.dumps(B.new_scene(1, 24, 24.0, [], camera_solve=_camera_solve_record(a))))["camera_solve"]
+    assert rec["model"] == info["model"] and rec["reason"] == info["reason"] and rec["num_frames"] == 24
+    assert rec["parallax_px"] == pytest.approx(info["parallax_px"]) and rec["seed"] == 0
 
 
 @pytest.mark.slow
