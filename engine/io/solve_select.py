@@ -10,7 +10,8 @@ The simpler fixed-centre model wins when the footage shows no translation: a hom
 static matches (moving regions masked) within ``max(min_parallax_px, floor_ratio x noise floor)`` even
 between frames far apart (:func:`translation_evidence`). SfM must otherwise also be *plausible*
 (:func:`sfm_problems`): enough frames registered, bundle adjustment converged to a small reprojection
-error with a minimum of sparse points, and a camera path without jumps. A rejected solve never
+error with a minimum of sparse points, a baseline between neighbouring frames that is small against the
+scene depth (scale), and a camera path without jumps. A rejected solve never
 changes the result silently: the chosen model and why go into one log line and ``meta['solve']``.
 """
 
@@ -24,6 +25,7 @@ MAX_REPROJ_PX = 1.5    # mean SfM reprojection error (px at solve resolution) of
 MIN_POINTS = 10        # sparse points a healthy SfM model keeps
 JUMP_RATIO = 8.0       # a step between consecutive registered frames this many times the median step ...
 JUMP_DEPTH = 0.05      # ... and longer than this fraction of the median scene depth is a jump
+MAX_STEP_DEPTH = 0.5   # median step between consecutive solved frames, in median scene depths
 
 
 def translation_evidence(ev: dict, min_parallax_px: float = MIN_PARALLAX_PX, floor_ratio: float = FLOOR_RATIO):
@@ -40,7 +42,8 @@ def translation_evidence(ev: dict, min_parallax_px: float = MIN_PARALLAX_PX, flo
 
 
 def sfm_problems(cams: dict, need: int, max_reproj_px: float = MAX_REPROJ_PX, min_points: int = MIN_POINTS,
-                 jump_ratio: float = JUMP_RATIO, jump_depth: float = JUMP_DEPTH) -> list[str]:
+                 jump_ratio: float = JUMP_RATIO, jump_depth: float = JUMP_DEPTH,
+                 max_step_depth: float = MAX_STEP_DEPTH) -> list[str]:
     """Why an SfM solution is implausible (empty list: healthy).
 
     Parameters
@@ -67,6 +70,9 @@ def sfm_problems(cams: dict, need: int, max_reproj_px: float = MAX_REPROJ_PX, mi
     if len(step) >= 3 and np.isfinite(depth):
         k = int(np.argmax(step))
         med = float(np.median(step))
+        if med > max_step_depth * depth:  # frames sampled from one video: neighbours share most of the view
+            out.append(f"the camera moves {med / depth:.2f} scene depths between neighbouring frames "
+                       f"(limit {max_step_depth})")
         if step[k] > jump_ratio * max(med, 1e-12) and step[k] > jump_depth * depth:
             idx = np.flatnonzero(reg)
             out.append(f"the camera jumps {step[k] / depth:.2f} scene depths between frames {idx[k]} and {idx[k + 1]} "

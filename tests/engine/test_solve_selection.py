@@ -153,6 +153,8 @@ def test_sfm_problems_flags_jumps_bad_bundle_adjustment_and_few_points():
     probs = sel.sfm_problems(_cams(jumpy), need=10)
     assert len(probs) == 1 and "jumps" in probs[0] and "frames 11 and 12" in probs[0]
     assert "reprojection error" in sel.sfm_problems(_cams(smooth, err=3.0), need=10)[0]
+    far = sel.sfm_problems(_cams(smooth * 60), need=10)  # 3 units per frame at a scene depth of ~5
+    assert len(far) == 1 and "scene depths between neighbouring frames" in far[0]
     assert "sparse points" in sel.sfm_problems(_cams(smooth, points=np.zeros((3, 3)) + [0, 0, 5]), need=10)[0]
     few = _cams(smooth)
     few["registered"][5:] = False
