@@ -165,16 +165,46 @@ def set_gaussian_attributes(mesh, gaussians, keep, aux: bool) -> None:
     mesh.update()
 
 
+#: A node whose dynamic score ``p_dyn`` reaches this is a moving node.
+MOVING_SCORE = 0.5
+
+
+def _node_groups(collection, nodes) -> tuple:
+    """``(moving, static)`` sub-collections of the result (both the result itself when the
+    bundle has no dynamic scores)."""
+    if nodes.p_dyn is None:
+        return collection, collection
+    parts = []
+    for label, tag in (("moving", "COLOR_01"), ("static", "COLOR_05")):
+        sub = bpy.data.collections.new(f"{collection.name}_{label}")
+        sub.color_tag = tag  # red / blue in the Outliner
+        sub["ms_nodes"] = label
+        collection.children.link(sub)
+        parts.append(sub)
+    return tuple(parts)
+
+
 def _build_empties(collection, nodes, display: str, name: str):
+    """One Empty per node; with dynamic scores, moving nodes (``p_dyn >= MOVING_SCORE``) are
+    spheres in a ``moving`` sub-collection and static ones small axes in ``static``."""
+    moving_col, static_col = _node_groups(collection, nodes)
+    score = np.ones(nodes.count) if nodes.p_dyn is None else np.asarray(nodes.p_dyn, np.float64)
     empties = []
     for i in range(nodes.count):  # objects are created one by one; data goes in bulk
         e = bpy.data.objects.new(f"{name}_{rig.bone_name(i)}", None)
-        e.empty_display_type = display
-        e.empty_display_size = float(nodes.radii[i]) * (0.5 if display == "SPHERE" else 1.0)
+        moving = bool(score[i] >= MOVING_SCORE)
+        e.empty_display_type = display if moving or nodes.p_dyn is None else "PLAIN_AXES"
+        e.empty_display_size = float(nodes.radii[i]) * (0.5 if e.empty_display_type == "SPHERE" else 0.3)
         e["ms_node"] = i
-        collection.objects.link(e)
+        e["ms_dynamic"] = float(score[i])
+        (moving_col if moving else static_col).objects.link(e)
         empties.append(e)
     return empties
+
+
+def moving_nodes(collection) -> list:
+    """The node Empties of a result whose dynamic score marks them as moving."""
+    return [e for e in node_empties(collection) if float(e.get("ms_dynamic", 1.0)) >= MOVING_SCORE]
 
 
 def write_bundle_fcurves(empties, nodes, scene_desc) -> np.ndarray:
@@ -308,7 +338,7 @@ def build_bundle_into_scene(context, bundle_dir, collection_name: str | None = N
         _build_gaussians(col, name, b, out, density, preview, with_rig)
     t = _time.perf_counter()
     if camera:
-        out["camera"] = build_camera(col, scene, b.scene)
+        out["camera"] = build_camera(col, scene, b.scene, name=f"{name}_Camera")
     timings["camera"] = _time.perf_counter() - t
     timings["total"] = _time.perf_counter() - t0
     return out
@@ -585,18 +615,44 @@ def add_preview_modifier(mesh_obj, preview: str = "POINTS"):
 # ----------------------------------------------------------------------------------
 # Finding what was built
 # ----------------------------------------------------------------------------------
+def result_collections() -> list:
+    """Every built result collection in the file."""
+    return [c for c in bpy.data.collections if "ms_bundle" in c]
+
+
+def result_of(obj):
+    """The result collection ``obj`` belongs to (also through a moving/static sub-collection)."""
+    if obj is None:
+        return None
+    for col in result_collections():
+        if obj.name in col.all_objects:
+            return col
+    return None
+
+
 def bundle_collection(context):
-    """The Motion Splats collection of the active object, else the last one built."""
-    obj = getattr(context, "active_object", None)
-    if obj is not None:
-        for col in obj.users_collection:
-            if "ms_bundle" in col:
-                return col
-    cols = [c for c in bpy.data.collections if "ms_bundle" in c]
-    return cols[-1] if cols else None
+    """The result to act on: the active object's, else the only one in the file.
+
+    None when there is none, or several and the active object is in none of them (use
+    :func:`why_no_result` for the message): acting on "the last one built" would send
+    edits to a result the artist did not edit.
+    """
+    found = result_of(getattr(context, "active_object", None))
+    if found is not None:
+        return found
+    cols = result_collections()
+    return cols[0] if len(cols) == 1 else None
+
+
+def why_no_result(context) -> str:
+    """Why :func:`bundle_collection` found nothing, for ``poll_message_set``."""
+    n = len(result_collections())
+    if n == 0:
+        return "No result in the scene: reconstruct or import a bundle first"
+    return f"{n} results in the file: select an object of the one to use (a node Empty, its mesh or camera)"
 
 
 def node_empties(collection) -> list:
     """The node Empties of a built collection, in node order."""
-    empties = [o for o in collection.objects if o.type == "EMPTY" and "ms_node" in o]
+    empties = [o for o in collection.all_objects if o.type == "EMPTY" and "ms_node" in o]
     return sorted(empties, key=lambda o: int(o["ms_node"]))

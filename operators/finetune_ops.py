@@ -77,7 +77,7 @@ class MOTIONSPLATS_OT_finetune(bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         if build.bundle_collection(context) is None:
-            cls.poll_message_set("No result in the scene: reconstruct or import a bundle first")
+            cls.poll_message_set(build.why_no_result(context))
             return False
         if any(jobs.running(kind) for kind in BUSY_KINDS):
             cls.poll_message_set("An engine job is writing results: wait for it or cancel it")

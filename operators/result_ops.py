@@ -69,9 +69,14 @@ class MOTIONSPLATS_OT_import_bundle(bpy.types.Operator):
 
 
 class _ResultOperator:
+    """Acts on the active result (:func:`addon.build.bundle_collection`); refuses when ambiguous."""
+
     @classmethod
     def poll(cls, context):
-        return build.bundle_collection(context) is not None
+        if build.bundle_collection(context) is None:
+            cls.poll_message_set(build.why_no_result(context))
+            return False
+        return True
 
 
 def report_sent(op, sent) -> None:
@@ -206,6 +211,32 @@ class MOTIONSPLATS_OT_set_preview(_ResultOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
+class MOTIONSPLATS_OT_select_moving_nodes(_ResultOperator, bpy.types.Operator):
+    """Select the node Empties of the active result that move (dynamic score of the node initialisation
+    >= 0.5); they are also grouped in its 'moving' sub-collection"""
+
+    bl_idname = "motion_splats.select_moving_nodes"
+    bl_label = "Select Moving Nodes"
+    bl_options = {"REGISTER", "UNDO"}
+
+    extend: BoolProperty(name="Extend", default=False, description="Keep the current selection")
+
+    def execute(self, context):
+        col = build.bundle_collection(context)
+        moving = build.moving_nodes(col)
+        if not self.extend:
+            for obj in context.view_layer.objects:
+                obj.select_set(False)
+        visible = [e for e in moving if e.name in context.view_layer.objects]
+        for e in visible:
+            e.select_set(True)
+        if visible:
+            context.view_layer.objects.active = visible[0]
+        self.report({"INFO"}, f"Selected {len(visible)} moving node(s) of {len(build.node_empties(col))} in "
+                              f"'{col.name}'")
+        return {"FINISHED"}
+
+
 class MOTIONSPLATS_OT_setup_render(_ResultOperator, bpy.types.Operator):
     """Render the result like the engine: its camera as scene camera (with its resolution), Cycles with
     the ellipsoid preview, Standard colour management, a black world, other objects hidden from render.
@@ -230,5 +261,5 @@ class MOTIONSPLATS_OT_setup_render(_ResultOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (MOTIONSPLATS_OT_import_bundle, MOTIONSPLATS_OT_setup_render, MOTIONSPLATS_OT_send_edits, MOTIONSPLATS_OT_export_ply,
+CLASSES = (MOTIONSPLATS_OT_import_bundle, MOTIONSPLATS_OT_setup_render, MOTIONSPLATS_OT_select_moving_nodes, MOTIONSPLATS_OT_send_edits, MOTIONSPLATS_OT_export_ply,
            MOTIONSPLATS_OT_export_camera_path, MOTIONSPLATS_OT_export_clip_manifest, MOTIONSPLATS_OT_set_preview)

@@ -29,10 +29,14 @@ class MOTIONSPLATS_PT_result(bpy.types.Panel):
         coll = build.bundle_collection(context)
         box = layout.box()
         if coll is None:
-            box.label(text="No result built yet", icon="INFO")
+            box.label(text=build.why_no_result(context), icon="INFO")
         else:
             box.label(text=coll.name, icon="OUTLINER_COLLECTION")
             box.label(text=str(coll.get("ms_bundle", "")))
+            moving, total = len(build.moving_nodes(coll)), len(build.node_empties(coll))
+            box.operator("motion_splats.select_moving_nodes", icon="RESTRICT_SELECT_OFF",
+                         text=f"Select Moving Nodes ({moving}/{total})")
+            box.label(text="Colours show in Material Preview / Rendered shading", icon="SHADING_TEXTURE")
             box.operator("motion_splats.set_preview", icon="FILE_REFRESH")
             box.operator("motion_splats.setup_render", icon="RESTRICT_RENDER_OFF")
             box.operator("motion_splats.send_edits", icon="EXPORT")

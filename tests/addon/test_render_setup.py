@@ -45,7 +45,7 @@ def test_setup_render_makes_the_result_renderable(extension, registered, tmp_pat
     assert bpy.ops.motion_splats.setup_render.poll()
     assert "UNDO" in extension.operators.result_ops.MOTIONSPLATS_OT_setup_render.bl_options
     assert bpy.ops.motion_splats.setup_render() == {"FINISHED"}
-    assert scene.camera == res["camera"] and scene.camera.name.startswith("MotionSplatsCamera")
+    assert scene.camera == res["camera"] and scene.camera.name == "MotionSplats_b_Camera"
     assert (scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage) == (320, 240, 100)
     assert scene.render.engine == "CYCLES"
     assert scene.view_settings.view_transform == "Standard" and scene.view_settings.look == "None"
