@@ -338,9 +338,7 @@ def _sfm_clip(clip, cams, mapper, s, size, why, rejected, evidence, seed, rep) -
             "mean_reproj_error": cams["mean_reproj_error"], "num_points": int(len(xyz)), "solve_scale": s,
             "rejected": list(rejected), "seed": seed, **_evidence_fields(evidence)}
     info["reason"] = why + ("; " + "; ".join(rejected) if rejected else "")
-    line = sel.sfm_line(info, mapper, info["reason"])
-    log.info(line)
-    _say(rep, line)
+    _announce(rep, sel.sfm_line(info, mapper, info["reason"]), "info")
     meta = dict(clip.meta)
     meta["solve"] = info
     out = dataclasses.replace(clip, K=Kf, w2c=w2c, dist=dist, points=xyz, point_colors=cams["colors"],
@@ -355,8 +353,7 @@ def _announce_fixed(fixed: Clip, why: str, rejected, evidence, seed, rep) -> Cli
     info.update(reason=why, rejected=list(rejected), seed=seed, **_evidence_fields(evidence))
     line = sel.fixed_line(info, why, fixed_centre_note(info))
     info["warning"] = line
-    log.warning(line)
-    _say(rep, line, "warning")
+    _announce(rep, line, "warning")
     return fixed
 
 
@@ -365,6 +362,16 @@ def _evidence_fields(evidence) -> dict:
     if evidence is None:
         return {}
     return {"parallax_px": float(evidence["parallax_px"]), "parallax_floor_px": float(evidence["floor_px"])}
+
+
+def _announce(reporter, line: str, level: str) -> None:
+    """The chosen model's one line: to ``reporter`` when given (the logger then keeps it at debug level, so
+    a CLI user does not read it twice), else to the module logger at ``level``."""
+    if reporter is not None:
+        reporter.log(line, level=level)
+        log.debug(line)
+    else:
+        log.log(logging.WARNING if level == "warning" else logging.INFO, line)
 
 
 def _say(reporter, message: str, level: str = "info") -> None:
