@@ -57,6 +57,8 @@ class Job:
     pending: Callable[[], None] | None = None
     started: float = field(default_factory=time.monotonic)
     ended: float | None = None
+    #: when the last event arrived (a long silence after a finished stage is kernel compiling)
+    last_event: float = field(default_factory=time.monotonic)
 
     @property
     def running(self) -> bool:
@@ -79,6 +81,7 @@ class Job:
         self.process.cancel(timeout=timeout)
 
     def apply(self, event: dict) -> None:
+        self.last_event = time.monotonic()
         kind = event.get("event")
         if kind == "progress":
             self.stage = str(event.get("stage", ""))

@@ -4,6 +4,8 @@ Cancel) and the error box of a failed run."""
 
 from __future__ import annotations
 
+import time
+
 import bpy
 
 from ..addon import jobs
@@ -16,6 +18,25 @@ def _format_eta(seconds) -> str:
     h, rem = divmod(seconds, 3600)
     m, s = divmod(rem, 60)
     return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
+#: Log lines shown under a running job.
+LOG_LINES = 3
+#: Seconds of silence after a finished stage before the panel says kernels are compiling.
+QUIET_S = 3.0
+
+
+def progress_lines(job, now: float) -> list[str]:
+    """Elapsed time and an ETA only when the engine has one; after a finished stage a
+    silence means the next one is starting (a first run compiles the engine's kernels,
+    about a minute on a CPU), which is said instead of a frozen "ETA 0:00"."""
+    lines = [f"Elapsed {_format_eta(now - job.started)}"]
+    stage_done = bool(job.total) and job.step >= job.total
+    if stage_done and now - job.last_event > QUIET_S:
+        lines.append("Preparing the next stage (a first run compiles the engine's kernels: about a minute)")
+    elif job.eta_s is not None and job.eta_s > 0 and not stage_done:
+        lines.append(f"ETA {_format_eta(job.eta_s)}")
+    return lines
 
 
 def draw_job(layout, job) -> None:
@@ -44,8 +65,15 @@ def draw_job(layout, job) -> None:
         metrics.append(f"PSNR {job.psnr:.2f} dB")
     if metrics:
         col.label(text="  ".join(metrics))
-    if job.running and job.eta_s is not None:
-        col.label(text=f"ETA {_format_eta(job.eta_s)}")
+    if job.running:
+        for line in progress_lines(job, time.monotonic()):
+            col.label(text=line)
+        logs = list(job.logs)[-LOG_LINES:]
+        if logs:
+            box.separator()
+            sub = box.column(align=True)
+            for line in logs:
+                sub.label(text=line[:160])
     if job.state == "failed":
         err = layout.box()
         err.alert = True

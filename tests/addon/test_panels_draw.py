@@ -267,3 +267,31 @@ def test_panels_draw_after_file_load_with_job(extension, registered, tmp_path, c
     assert "Stage: priors" in labels(logs["MOTIONSPLATS_PT_main"])
     job.process.kill()
     jobs.wait(job, timeout=10)
+
+
+def test_job_box_is_honest_while_the_engine_is_quiet(extension, registered, tmp_path, clean_jobs):
+    """Issue #18.5: a finished stage followed by silence (first-run kernel compile) is not
+    'ETA 0:00'; the box shows the elapsed time and the last log lines."""
+    jobs, bridge = extension.addon.jobs, extension.addon.bridge
+    main_panel = extension.panels.main_panel
+    job = jobs.start("train", bridge.EngineProcess(fake_engine(tmp_path, "quiet", """
+        emit("log", level="info", message="MANI: 96 nodes")
+        emit("progress", stage="nodes", step=1, total=1, eta_s=0.0)
+        time.sleep(30)
+    """), cwd=tmp_path), label="Reconstruct")
+    assert wait_until(lambda: (jobs.drain(), job.stage)[1] == "nodes", 15)
+    job.last_event -= 10  # ten quiet seconds since the stage finished
+    box: list = []
+    main_panel.draw_job(Layout(box), job)
+    texts = labels(box)
+    assert not any(t.startswith("ETA") for t in texts), texts
+    assert any("compiles the engine's kernels" in t for t in texts), texts
+    assert any(t.startswith("Elapsed ") for t in texts)
+    assert any("MANI: 96 nodes" in t for t in texts)
+    # a stage under way with a real estimate shows it
+    job.apply({"event": "progress", "stage": "train", "step": 30, "total": 100, "eta_s": 75})
+    box = []
+    main_panel.draw_job(Layout(box), job)
+    assert "ETA 1:15" in labels(box)
+    job.process.kill()
+    jobs.wait(job, timeout=10)
