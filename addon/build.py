@@ -43,12 +43,11 @@ import numpy as np
 
 from . import fcurves, rig
 from ..engine import bundle as bundle_io
-from ..engine.geometry.blender_camera import blender_camera_from_intrinsics
+from ..engine.geometry.blender_camera import quat_to_matrix_np as quat_to_matrix
 
 PREVIEW_MODES = ("POINTS", "ELLIPSOIDS")
 GN_MODIFIER = "MotionSplatsPreview"
 GN_TREE = {"POINTS": "MotionSplatsPoints", "ELLIPSOIDS": "MotionSplatsEllipsoids"}
-CV_FROM_BLENDER = np.diag([1.0, -1.0, -1.0, 1.0])
 SEED = 0  # density subsets are deterministic
 AUX_AXES = 2  # auxiliary vertices per Gaussian in ELLIPSOIDS builds (local x and y axes)
 
@@ -69,29 +68,6 @@ def subset_indices(count: int, density: float) -> np.ndarray:
         return np.arange(count, dtype=np.int64)
     keep = max(1, int(round(count * density))) if count else 0
     return np.sort(np.random.default_rng(SEED).permutation(count)[:keep]).astype(np.int64)
-
-
-def quat_to_matrix(q) -> np.ndarray:
-    """``q [..., 4]`` wxyz (normalised here) -> ``[..., 3, 3]``."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
-
-
-def matrix_world_from_w2c(w2c) -> np.ndarray:
-    """Blender camera ``matrix_world`` from an OpenCV ``w2c [4, 4]``."""
-    return np.linalg.inv(CV_FROM_BLENDER @ np.asarray(w2c, dtype=np.float64))
-
-
-def w2c_from_matrix_world(matrix_world) -> np.ndarray:
-    """OpenCV ``w2c`` of a Blender camera with ``matrix_world`` (scale removed)."""
-    m = np.asarray(matrix_world, dtype=np.float64).copy()
-    m[:3, :3] /= np.linalg.norm(m[:3, :3], axis=0, keepdims=True)
-    return CV_FROM_BLENDER @ np.linalg.inv(m)
 
 
 def aux_points(means, quats, log_scales, extent: float) -> tuple[np.ndarray, np.ndarray]:
@@ -232,7 +208,14 @@ def apply_scene_time(scene, scene_desc) -> None:
 
 
 def build_camera(collection, scene, scene_desc, name: str = "MotionSplatsCamera"):
-    """An animated camera following ``scene.json`` cameras (None when there are none)."""
+    """An animated camera following ``scene.json`` cameras (None when there are none).
+
+    The one animated-camera builder (:func:`.cameras.build_animated_camera`: linear keys,
+    one per camera); it becomes the scene camera only when the scene has none, and the
+    render size it needs is stored on it for Set up render.
+    """
+    from .cameras import build_animated_camera
+
     cams = scene_desc.get("cameras") or []
     # the training camera path; held-out cameras (another viewpoint at the same times) are
     # for evaluation and would fight over the same keyframes
@@ -240,46 +223,12 @@ def build_camera(collection, scene, scene_desc, name: str = "MotionSplatsCamera"
     if not cams:
         return None
     c0 = cams[0]
-    K = np.asarray(c0["K"], dtype=np.float64)
-    s = blender_camera_from_intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], int(c0["width"]), int(c0["height"]))
-    data = bpy.data.cameras.new(name)
-    data.type = "PERSP"
-    data.lens, data.sensor_width, data.sensor_height = s["lens"], s["sensor_width"], s["sensor_height"]
-    data.sensor_fit = s["sensor_fit"]
-    data.shift_x, data.shift_y = s["shift_x"], s["shift_y"]
-    w2cs = np.stack([np.asarray(c["w2c"], np.float64) for c in cams])
-    data.clip_start = 0.01
-    obj = bpy.data.objects.new(name, data)
-    collection.objects.link(obj)
-    # the render size this camera's K needs; Set up render (render_setup.py) applies it
-    obj["ms_res_x"], obj["ms_res_y"] = int(s["res_x"]), int(s["res_y"])
-    obj["ms_pixel_aspect_x"], obj["ms_pixel_aspect_y"] = float(s["pixel_aspect_x"]), float(s["pixel_aspect_y"])
-    obj.rotation_mode = "QUATERNION"
     frames = bundle_io.frame_of_time(scene_desc, [c["time"] for c in cams])
     order = np.argsort(frames, kind="stable")
-    mats = [matrix_world_from_w2c(w2cs[j]) for j in order]
-    import mathutils
-
-    prev = None
-    if len(cams) == 1:
-        obj.matrix_world = mathutils.Matrix(mats[0].tolist())
-    else:
-        for j, m in zip(order, mats):  # one key per camera (not per Gaussian)
-            mw = mathutils.Matrix(m.tolist())
-            loc, rot, _ = mw.decompose()
-            if prev is not None and prev.dot(rot) < 0:  # keep quaternion keys continuous
-                rot.negate()
-            prev = rot
-            obj.location, obj.rotation_quaternion = loc, rot
-            f = float(frames[j])
-            obj.keyframe_insert("location", frame=f)
-            obj.keyframe_insert("rotation_quaternion", frame=f)
-        depth = float(np.median(np.abs(w2cs[:, 2, 3]))) if len(w2cs) else 1.0
-        data.clip_end = max(100.0, 100 * depth)
-    obj["ms_camera"] = True
-    if scene.camera is None:
-        scene.camera = obj
-    return obj
+    w2cs = np.stack([np.asarray(cams[j]["w2c"], np.float64) for j in order])
+    return build_animated_camera(scene, name, c0["K"], int(c0["width"]), int(c0["height"]), w2cs,
+                                 [float(frames[j]) for j in order], collection=collection, set_render=False,
+                                 make_scene_camera=scene.camera is None)
 
 
 def build_bundle_into_scene(context, bundle_dir, collection_name: str | None = None, density: float = 1.0,

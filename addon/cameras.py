@@ -7,9 +7,10 @@ Design choice (issue #7): COLMAP models are parsed here in pure Python + numpy (
 pycolmap (not available inside Blender) and not through an engine subprocess (the import
 is a few milliseconds and must work before an engine interpreter is configured).
 
-The pure functions (``parse_colmap_*``, ``colmap_K_dist``, ``qvec_to_matrix``,
-``tracking_K``, ``w2c_from_blender_matrix``) do not touch ``bpy`` and are unit-tested on
-arrays; :func:`build_animated_camera` and the ``*_to_scene`` helpers need Blender.
+The pure functions (``parse_colmap_*``, ``colmap_K_dist``, ``tracking_K``) do not touch
+``bpy`` and are unit-tested on arrays; :func:`build_animated_camera` (the one animated
+camera builder, also used for result bundles) needs Blender. The axis conversion and
+quaternion -> matrix are the engine's numpy ones (``engine.geometry.blender_camera``).
 
 Conventions (docs/architecture.md): K in continuous pixels with y down (upper-left pixel
 centre at (0.5, 0.5)), which is COLMAP's convention. Blender's tracking principal point
@@ -25,10 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.errors import InputError
-from ..engine.geometry.blender_camera import blender_camera_from_intrinsics
+from ..engine.geometry.blender_camera import (blender_camera_from_intrinsics, blender_matrix_from_w2c,
+                                              quat_to_matrix_np, w2c_from_blender_matrix)
 from ..engine.io.colmap import colmap_K_dist as _engine_colmap_K_dist
-
-CV_FROM_BLENDER = np.diag([1.0, -1.0, -1.0, 1.0])
 
 #: COLMAP camera models: id -> (name, number of params)
 COLMAP_MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
@@ -37,24 +37,7 @@ COLMAP_MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL
 
 
 # -- math ---------------------------------------------------------------------------------
-def qvec_to_matrix(q) -> np.ndarray:
-    """COLMAP/Blender quaternion ``(w, x, y, z)`` -> rotation ``[3, 3]`` (normalised)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
-def w2c_from_blender_matrix(matrix) -> np.ndarray:
-    """OpenCV ``w2c [4,4]`` of a Blender camera-to-world matrix (scale removed)."""
-    m = np.asarray(matrix, dtype=np.float64).copy()
-    m[:3, :3] /= np.linalg.norm(m[:3, :3], axis=0, keepdims=True)
-    return CV_FROM_BLENDER @ np.linalg.inv(m)
-
-
-def blender_matrix_from_w2c(w2c) -> np.ndarray:
-    """Blender camera ``matrix_world`` from an OpenCV ``w2c [4,4]``."""
-    return np.linalg.inv(CV_FROM_BLENDER @ np.asarray(w2c, dtype=np.float64))
+qvec_to_matrix = quat_to_matrix_np  # COLMAP's qvec is (w, x, y, z) like Blender's
 
 
 def project(K, w2c, points) -> np.ndarray:
@@ -241,11 +224,13 @@ def read_tracking_reconstruction(clip) -> dict:
 
 
 # -- scene camera -------------------------------------------------------------------------
-def build_animated_camera(scene, name: str, K, width: int, height: int, w2cs, frames, collection=None):
-    """An animated perspective camera (one key per frame) reproducing ``K`` and ``w2cs``.
+def build_animated_camera(scene, name: str, K, width: int, height: int, w2cs, frames, collection=None,
+                          set_render: bool = True, make_scene_camera: bool = True):
+    """An animated perspective camera (one linear key per frame) reproducing ``K`` and ``w2cs [F, 4, 4]``.
 
-    Sets the scene's render resolution / pixel aspect to the camera's, and makes it the
-    scene camera. Returns the object.
+    The render size the intrinsics need is stored on the object (``ms_res_x`` ...) and,
+    with ``set_render``, applied to the scene; ``make_scene_camera`` makes it the scene
+    camera. Linear keys: no Bézier overshoot between per-frame poses. Returns the object.
     """
     import bpy
     import mathutils
@@ -260,16 +245,18 @@ def build_animated_camera(scene, name: str, K, width: int, height: int, w2cs, fr
     data.clip_start = 0.01
     obj = bpy.data.objects.new(name, data)
     (collection or scene.collection).objects.link(obj)
-    r = scene.render
-    r.resolution_x, r.resolution_y, r.resolution_percentage = s["res_x"], s["res_y"], 100
-    r.pixel_aspect_x, r.pixel_aspect_y = s["pixel_aspect_x"], s["pixel_aspect_y"]
+    obj["ms_res_x"], obj["ms_res_y"] = int(s["res_x"]), int(s["res_y"])
+    obj["ms_pixel_aspect_x"], obj["ms_pixel_aspect_y"] = float(s["pixel_aspect_x"]), float(s["pixel_aspect_y"])
+    if set_render:
+        r = scene.render
+        r.resolution_x, r.resolution_y, r.resolution_percentage = s["res_x"], s["res_y"], 100
+        r.pixel_aspect_x, r.pixel_aspect_y = s["pixel_aspect_x"], s["pixel_aspect_y"]
     obj.rotation_mode = "QUATERNION"
     w2cs = np.asarray(w2cs, dtype=np.float64).reshape(-1, 4, 4)
     prev = None
-    for w2c, f in zip(w2cs, frames):
-        mw = mathutils.Matrix(blender_matrix_from_w2c(w2c).tolist())
-        loc, rot, _ = mw.decompose()
-        if prev is not None and prev.dot(rot) < 0:
+    for mw_np, f in zip(blender_matrix_from_w2c(w2cs), frames):
+        loc, rot, _ = mathutils.Matrix(mw_np.tolist()).decompose()
+        if prev is not None and prev.dot(rot) < 0:  # keep quaternion keys continuous
             rot.negate()
         prev = rot
         obj.location, obj.rotation_quaternion = loc, rot
@@ -281,7 +268,8 @@ def build_animated_camera(scene, name: str, K, width: int, height: int, w2cs, fr
         depth = float(np.median(np.abs(w2cs[:, 2, 3])))
         data.clip_end = max(100.0, 100 * depth)
     obj["ms_camera"] = True
-    scene.camera = obj
+    if make_scene_camera:
+        scene.camera = obj
     return obj
 
 

@@ -20,7 +20,7 @@ from . import build, fcurves
 from ..engine import bundle as bundle_io
 from ..engine.errors import InputError
 from ..engine.fsutil import atomic_write_json
-from ..engine.geometry.blender_camera import blender_camera_intrinsics
+from ..engine.geometry.blender_camera import blender_camera_intrinsics, w2c_from_blender_matrix
 
 CAMERA_PATH_FORMAT = "motion-splats-camera-path"
 CAMERA_PATH_VERSION = 1
@@ -47,7 +47,7 @@ def sample_camera(scene, cam_obj, frames) -> list[dict]:
             f = float(f)
             scene.frame_set(int(np.floor(f)), subframe=f - np.floor(f))
             K, w, h = camera_K(scene, cam_obj)
-            w2c = build.w2c_from_matrix_world(np.array(cam_obj.matrix_world))
+            w2c = w2c_from_blender_matrix(np.array(cam_obj.matrix_world))
             out.append({"frame": int(f) if f == int(f) else f, "K": K, "w2c": w2c, "width": w, "height": h})
     finally:
         scene.frame_set(keep[0], subframe=keep[1])

@@ -180,9 +180,9 @@ def footage_cameras(context, movieclip, use_scene_camera: bool) -> tuple[list | 
     cams = exporters.clip_cameras(context.scene, movieclip, cam)
     if not footage.cameras_move([c["w2c"] for c in cams]):
         solved = movieclip.tracking.reconstruction.is_valid
-        how = ("the clip has a camera solve: use Import Tracked Camera to animate a camera with it" if solved else
-               "to give it real cameras, track and solve the camera in the Movie Clip Editor, then "
-               "Import Tracked Camera")
+        how = ("the clip has a camera solve: press Tracked Camera (Reconstruct panel) to animate a camera "
+               "with it" if solved else "to give it real cameras, track and solve the camera in the Movie Clip "
+               "Editor, then press Tracked Camera (Reconstruct panel)")
         return None, (f"Camera '{cam.name}' does not move over the clip (never tracked or animated), so it is "
                       f"not sent: the engine solves the cameras from the footage; {how}")
     return cams, f"Cameras: scene camera '{cam.name}' ({len(cams)} frames)"

@@ -1,6 +1,9 @@
-"""Blender camera settings <-> pinhole intrinsics, in pure Python.
+"""Blender camera settings <-> pinhole intrinsics, and the numpy versions of the camera
+axis conversion and quaternion -> matrix.
 
-No numpy or torch: the add-on imports this inside Blender. Reproduces Blender's
+No torch: the add-on imports this inside Blender (numpy only, imported lazily by the
+array helpers). The torch versions used by the engine live in ``camera.py`` and
+``quaternion.py``; tests keep both equal. Reproduces Blender's
 viewplane rules (``BKE_camera_params_compute_viewplane``): the sensor fit picks which
 image axis the sensor size spans (AUTO: the larger, after pixel aspect), lens shift is
 measured in units of that fitted axis, and pixel aspect stretches y.
@@ -10,6 +13,9 @@ Pixel coordinates are continuous with y down and the upper-left pixel's centre a
 """
 
 from __future__ import annotations
+
+#: OpenCV camera axes from Blender's (x right; y down vs up; z forward vs backward).
+CV_FROM_BLENDER_DIAG = (1.0, -1.0, -1.0, 1.0)
 
 
 def _fit(sensor_fit: str, res_x: float, res_y: float, aspect_x: float, aspect_y: float) -> str:
@@ -66,3 +72,35 @@ def blender_camera_from_intrinsics(fx: float, fy: float, cx: float, cy: float, w
         "res_x": int(width),
         "res_y": int(height),
     }
+
+
+# -- numpy helpers (the add-on's side of camera.py / quaternion.py) --------------------------
+def w2c_from_blender_matrix(matrix_world):
+    """OpenCV ``w2c [..., 4, 4]`` of Blender camera-to-world matrices ``[..., 4, 4]``
+    (object scale removed), numpy float64."""
+    import numpy as np
+
+    m = np.array(matrix_world, dtype=np.float64)
+    m[..., :3, :3] /= np.linalg.norm(m[..., :3, :3], axis=-2, keepdims=True)
+    return np.diag(CV_FROM_BLENDER_DIAG) @ np.linalg.inv(m)
+
+
+def blender_matrix_from_w2c(w2c):
+    """Blender camera ``matrix_world [..., 4, 4]`` from OpenCV ``w2c [..., 4, 4]`` (numpy)."""
+    import numpy as np
+
+    return np.linalg.inv(np.diag(CV_FROM_BLENDER_DIAG) @ np.asarray(w2c, dtype=np.float64))
+
+
+def quat_to_matrix_np(q):
+    """Rotation matrices ``[..., 3, 3]`` of quaternions ``q [..., 4]`` (w, x, y, z;
+    normalised here), numpy float64."""
+    import numpy as np
+
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
