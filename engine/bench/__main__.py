@@ -9,7 +9,7 @@ import sys
 from .common import print_rows
 
 #: Benchmark modules under ``engine.bench``; add yours here.
-BENCHES: tuple[str, ...] = ("raster", "nodes", "priors", "quality", "train", "build", "cycles")
+BENCHES: tuple[str, ...] = ("raster", "nodes", "priors", "quality", "train", "build", "cycles", "solve")
 
 
 def build_parser() -> argparse.ArgumentParser:

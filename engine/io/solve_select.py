@@ -100,7 +100,7 @@ def sfm_line(info: dict, mapper: str, evidence: str) -> str:
 def fixed_line(info: dict, why: str, note: str) -> str:
     """The one line announcing the fixed-centre (rotation-only or static) model, with its caveats."""
     kind = "static camera" if info["model"] == "static" else "rotation-only camera"
-    return f"camera solve: {kind} (fixed centre) -- chosen because {why}. {note}"
+    return f"camera solve: {kind} (fixed centre) -- chosen because {why.rstrip('.')}. {note}"
 
 
 def summary(info: dict) -> dict:
