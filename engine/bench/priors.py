@@ -345,7 +345,7 @@ def mask_metrics(dynamic, gt: SceneGT, thresh: float = 0.5) -> dict:
     per = inter[union > 0] / union[union > 0]
     return {"iou": tp / max(tp + fp + fn, 1.0), "iou_frame_mean": float(per.mean()) if len(per) else None,
             "precision": tp / max(tp + fp, 1.0), "recall": tp / max(tp + fn, 1.0),
-            "gt_dynamic_frac": float(g.mean()), "pred_dynamic_frac": float(pred.mean())}
+            "f1": 2 * tp / max(2 * tp + fp + fn, 1.0), "gt_dynamic_frac": float(g.mean()), "pred_dynamic_frac": float(pred.mean())}
 
 
 def track_metrics(tracks, gt: SceneGT) -> dict:
@@ -364,6 +364,12 @@ def track_metrics(tracks, gt: SceneGT) -> dict:
     n0 = int(start.sum())
     end_alive = start & vis[:, -1]
     stat = lambda a, fn: float(fn(a)) if len(a) else None  # noqa: E731
+    # moving parts: is the track there (visible and within 3 px) where GT says the point is visible?
+    good = vis & (epe < 3.0)
+    gdyn = G["dynamic"][:, None] & G["visible"] & after
+    d8 = G["dynamic"] & (G["f0"] + 8 < F)
+    at8 = np.minimum(G["f0"] + 8, F - 1)
+    d8 &= G["visible"][np.arange(P), at8]
     return {"tracks": int(P), "tracks_dynamic": int(G["dynamic"].sum()), "gt_valid": float(G["valid"].mean()),
             "pairs": int(pairs.sum()),
             "epe_median": stat(e, np.median), "epe_mean": stat(e, np.mean),
@@ -375,7 +381,13 @@ def track_metrics(tracks, gt: SceneGT) -> dict:
             "false_visible": float((judged & G["occluded"]).sum() / max(judged.sum(), 1)),
             "survival": float(end_alive.sum() / max(n0, 1)),
             "survival_gt": float((start & G["visible"][:, -1]).sum() / max(n0, 1)),
-            "alive_ratio": float(vis[:, -1].sum() / max(n0, 1))}
+            "alive_ratio": float(vis[:, -1].sum() / max(n0, 1)),
+            "epe_mean_dynamic": stat(epe[dyn], np.mean), "within_2px_dynamic": stat(epe[dyn], lambda a: (a < 2).mean()),
+            "false_visible_dynamic": float((judged & G["occluded"] & G["dynamic"][:, None]).sum()
+                                           / max((judged & G["dynamic"][:, None]).sum(), 1)),
+            "coverage_dynamic": float((good & gdyn).sum() / max(gdyn.sum(), 1)),
+            "tracked8_dynamic": float(good[np.arange(P), at8][d8].mean()) if d8.any() else None,
+            "track_len_dynamic": stat((vis[G["dynamic"]].sum(1)).astype(float), np.median)}
 
 
 @contextmanager

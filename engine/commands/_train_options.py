@@ -33,6 +33,13 @@ def add_clip_options(parser):
     pri.add_argument("--depth-model", help="ONNX monocular depth model")
     pri.add_argument("--mask-model", help="ONNX segmentation model for the foreground prior")
     pri.add_argument("--tracks-model", help="ONNX point tracker")
+    pri.add_argument("--flow-model", help="ONNX optical flow (RAFT contract) for the tracks and the motion mask")
+    pri.add_argument("--flow-backend", choices=("auto", "dis", "onnx"),
+                     help="optical flow: dis (weight-free, default), onnx (--flow-model or the shipped RAFT-small), "
+                          "auto (the shipped RAFT-small when usable, else dis)")
+    pri.add_argument("--depth-output", choices=("inverse", "depth"),
+                     help="what --depth-model predicts: inverse (larger = nearer, MiDaS/Depth Anything) or depth "
+                          "(larger = farther, e.g. PyDNet); default: the model's sidecar JSON, else inverse")
     pri.add_argument("--depth-path", help="precomputed depth (.npy [F,H,W] or folder of 16-bit PNG)")
     pri.add_argument("--mask-path", help="precomputed masks (folder of PNG)")
     pri.add_argument("--tracks-path", help="precomputed tracks (.npz with xy [P,F,2], visible [P,F])")
@@ -77,6 +84,11 @@ def prior_config_from_args(args):
         cfg.mask_backend, cfg.mask_model = "onnx", args.mask_model
     if args.tracks_model:
         cfg.tracks_backend, cfg.tracks_model = "onnx", args.tracks_model
+    if getattr(args, "flow_backend", None):
+        cfg.flow_backend = args.flow_backend
+    if getattr(args, "flow_model", None):
+        cfg.flow_backend, cfg.flow_model = "onnx", args.flow_model
+    cfg.depth_output = getattr(args, "depth_output", None)
     cfg.depth_path, cfg.mask_path, cfg.tracks_path = args.depth_path, args.mask_path, args.tracks_path
     if getattr(args, "no_models", False):
         return cfg

@@ -24,13 +24,14 @@ import numpy as np
 
 from ..fsutil import atomic_save_npz
 from . import depth as _depth
+from . import flow as _flow
 from . import motion as _motion
 from . import precomputed as _pre
 from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
-ALGO_VERSIONS = {"tokens": 1, "tracks": 2, "depth": 1, "dynamic": 4}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth": 1, "dynamic": 4}
 
 
 @dataclass
@@ -46,10 +47,14 @@ class PriorConfig:
     num_points: int = 2000
     flow_width: int = 480
     fb_thresh: float = 1.0
+    flow_backend: str = "dis"  # 'auto' (shipped RAFT when usable, else DIS) | 'dis' | 'onnx' (flow_model)
+    flow_model: str | None = None
+    flow_model_width: int = 240  # working width of a learned flow (shared by tracks and the motion mask)
     depth_backend: str = "sparse"
     depth_model: str | None = None
     depth_path: str | None = None
     depth_width: int = 320
+    depth_output: str | None = None  # ONNX depth: 'inverse' | 'depth' (larger = farther); None: sidecar, else inverse
     mask_backend: str = "motion"
     mask_model: str | None = None
     mask_path: str | None = None
@@ -133,9 +138,16 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
     keys, recomputed = {}, []
     log = reporter.log if reporter is not None else (lambda *_a, **_k: None)
 
+    # one flow for the tracker and the motion mask when it is learned (DIS stays per consumer: cheap)
+    fbk, fmodel = _flow.resolve_flow_backend(cfg.flow_backend, cfg.flow_model)
+    fid = [fbk, _file_id(fmodel), cfg.flow_model_width if fbk == "onnx" else None]
+    source = None
+    if fbk == "onnx":
+        source = _flow.FlowSource(frames, "onnx", fmodel, cfg.flow_model_width)
+
     # tracks
     tp = {"backend": cfg.tracks_backend, "model": _file_id(cfg.tracks_model), "path": _file_id(cfg.tracks_path),
-          "n": cfg.num_points, "w": cfg.flow_width, "fb": cfg.fb_thresh}
+          "n": cfg.num_points, "w": cfg.flow_width, "fb": cfg.fb_thresh, "flow": fid}
     keys["tracks"] = k = prior_key("tracks", cid, tp)
     z = _load(cache, "tracks", k)
     if z is not None:
@@ -146,13 +158,13 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             tracks = _pre.load_tracks(cfg.tracks_path, F)
         else:
             tracks = _tracks.track_points(frames, cfg.num_points, cfg.tracks_backend, cfg.tracks_model,
-                                          cfg.flow_width, cfg.fb_thresh, reporter=reporter)
+                                          cfg.flow_width, cfg.fb_thresh, reporter=reporter, source=source)
         _save(cache, "tracks", k, **dataclasses.asdict(tracks))
     log(f"tracks: {tracks.xy.shape[0]} points")
 
     # depth (depends on tracks unless precomputed)
     dp = {"backend": cfg.depth_backend, "model": _file_id(cfg.depth_model), "path": _file_id(cfg.depth_path),
-          "w": cfg.depth_width}
+          "w": cfg.depth_width, "out": cfg.depth_output}
     # a precomputed mask is known before depth: its dynamic regions give no anchors
     pre_mask = _pre.load_mask(cfg.mask_path, (F, H, W)) if cfg.mask_path else None
     up = () if cfg.depth_path else (keys["tracks"], _file_id(cfg.mask_path))
@@ -166,12 +178,13 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             depth = _pre.load_depth(cfg.depth_path, (F, H, W)); dconf = np.ones_like(depth)
         else:
             depth, dconf = _depth.estimate_depth(frames, K, w2c, cfg.depth_backend, cfg.depth_model, tracks=tracks,
-                                                 dynamic=pre_mask, max_width=cfg.depth_width, reporter=reporter)
+                                                 dynamic=pre_mask, max_width=cfg.depth_width, reporter=reporter,
+                                                 output=cfg.depth_output)
         _save(cache, "depth", k, depth=depth, confidence=dconf)
 
     # dynamic mask (motion backend depends on depth)
     mp = {"backend": cfg.mask_backend, "model": _file_id(cfg.mask_model), "path": _file_id(cfg.mask_path),
-          "w": cfg.mask_width, "fg": cfg.foreground_classes}
+          "w": cfg.mask_width, "fg": cfg.foreground_classes, "flow": fid if cfg.mask_backend == "motion" else None}
     up = (keys["depth"],) if (cfg.mask_backend == "motion" and not cfg.mask_path) else ()
     keys["dynamic"] = k = prior_key("dynamic", cid, mp, up)
     z = _load(cache, "dynamic", k)
@@ -183,7 +196,7 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             dyn = pre_mask
         else:
             dyn = _motion.dynamic_mask(frames, K, w2c, depth, cfg.mask_backend, cfg.mask_model, cfg.mask_width,
-                                       cfg.foreground_classes, reporter=reporter)
+                                       cfg.foreground_classes, reporter=reporter, source=source)
         _save(cache, "dynamic", k, dynamic=dyn)
 
     # tokens

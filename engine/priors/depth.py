@@ -26,9 +26,15 @@ with the final weight-free motion mask: 0.22/0.21/0.20 -> 0.11/0.11/0.11, but st
 default: neither improves the node-trajectory error of ``python -m engine.bench nodes``.
 
 ``onnx`` backend: a monocular model (input as in :mod:`onnx_util`; output [B,H,W] or
-[B,1,H,W]; sidecar ``output`` = 'inverse' (default, MiDaS / Depth-Anything style relative
-inverse depth) or 'depth'). The prediction is aligned per frame with a robust scale+shift
-fit (IRLS, Huber) against the anchors, in inverse depth for 'inverse' models.
+[B,1,H,W]). ``output`` (argument, else sidecar ``output``, else 'inverse'): 'inverse' for
+MiDaS / Depth-Anything style relative inverse depth (larger = nearer), 'depth' for relative
+depth (larger = farther, e.g. PyDNet). Input size: sidecar ``input_size``, else the graph's
+fixed size, else (dynamic H, W) the frame's aspect at sidecar ``input_width`` or
+``max_width`` px, rounded to multiples of sidecar ``size_multiple`` (default 32; PyDNet needs
+64). The prediction is aligned per frame with a robust scale+shift fit (IRLS, Huber) against
+that frame's anchors (triangulated static tracks: moving points fail the triangulation), in
+inverse depth for 'inverse' models and in depth for 'depth' models; moving objects keep the
+model's own depth relative to the scene (the weight-free fill only copies their surroundings).
 """
 
 from __future__ import annotations
@@ -181,7 +187,7 @@ def robust_affine(pred, target, iters=10):
 
 
 def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=None, dynamic=None, tracks=None,
-                   max_width=320, min_anchors=20, reporter=None, moving_fill="surround"):
+                   max_width=320, min_anchors=20, reporter=None, moving_fill="surround", output=None):
     """Dense metric depth for every frame.
 
     Parameters
@@ -193,6 +199,8 @@ def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=No
     tracks : :class:`~engine.priors.tracks.Tracks`, used when ``anchors`` is None
     moving_fill : 'surround' (default) | 'support': sparse backend only, with ``dynamic``
         (see the module docstring and :func:`support_fill`)
+    output : 'inverse' | 'depth' | None, onnx backend: what the model predicts (None: the
+        sidecar's ``output``, else 'inverse')
 
     Returns
     -------
@@ -231,12 +239,24 @@ def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=No
         return depth, conf
     if backend != "onnx":
         raise InputError(f"unknown depth backend {backend!r}.", fix="Use 'sparse' or 'onnx'.")
+    return _onnx_depth(frames, anchors, median, model_path, max_width, output, reporter)
+
+
+def _onnx_depth(frames, anchors, median, model_path, max_width, output, reporter):
+    """ONNX backend of :func:`estimate_depth` -> (depth [F,H,W], confidence [F,H,W])."""
     import cv2
 
+    F, H, W, _ = frames.shape
+    depth = np.empty((F, H, W), np.float32); conf = np.zeros((F, H, W), np.float32)
     sess = onnx_util.load_session(model_path)
     side = onnx_util.read_sidecar(model_path)
     name, layout, size, fixed = onnx_util.image_input_spec(sess, side, (384, 384))
-    kind = side.get("output", "inverse")
+    if "input_size" not in side and onnx_util.has_dynamic_hw(sess, layout):
+        size = onnx_util.dynamic_input_size(H, W, side.get("input_width", max_width), side.get("size_multiple", 32))
+    kind = output or side.get("output", "inverse")
+    if kind not in ("inverse", "depth"):
+        raise InputError(f"unknown depth model output {kind!r}.", model_path,
+                         "Use 'inverse' (larger = nearer) or 'depth' (larger = farther).")
     for f in range(F):
         x = onnx_util.prepare_images(frames[f:f + 1], size, layout, side.get("mean", onnx_util.IMAGENET_MEAN),
                                      side.get("std", onnx_util.IMAGENET_STD))

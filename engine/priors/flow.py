@@ -1,8 +1,70 @@
-"""Dense optical flow (cv2.DISOpticalFlow) and vectorised bilinear sampling."""
+"""Dense optical flow: DIS (weight-free) or RAFT-style ONNX, memoised per frame pair.
+
+:class:`FlowSource` is the one place a prior asks for flow. It owns the clip's frames at a
+working size and returns ``[h,w,2]`` float32 flows (dx, dy in working px; pixel ``(i, j)``
+has its centre at ``(j+.5, i+.5)``) for any frame pair, computed once and kept in memory, so
+the tracker and the motion mask can share the (expensive) learned flows.
+
+``dis`` backend: ``cv2.DISOpticalFlow`` on grey frames (``preset`` medium).
+
+``onnx`` backend (RAFT contract): inputs ``image1``, ``image2`` float32 ``[1,3,H,W]`` RGB in
+0..255 (normalisation is inside the graph), ``H`` and ``W`` multiples of 8 (the frames are
+edge-padded at the bottom/right and the flow cropped back); first output ``flow``
+``[1,2,H,W]`` (x, y displacement image1 -> image2). RAFT-small (BSD-3-Clause) ships in
+``engine/priors/models/`` (:func:`shipped_flow_model`).
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+from ..errors import InputError
+
+MODELS_DIR = Path(__file__).resolve().parent / "models"
+SHIPPED_FLOW = "raft_small_it6.onnx"
+
+
+def shipped_flow_model():
+    """Path of the RAFT-small model shipped with the engine, or ``None`` when absent/unusable.
+
+    ``None`` also when onnxruntime cannot be imported: the default then falls back to DIS.
+    """
+    p = MODELS_DIR / SHIPPED_FLOW
+    if not p.is_file():
+        return None
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        return None
+    return str(p)
+
+
+def resolve_flow_backend(backend, model_path):
+    """``(backend, model_path)`` with ``'auto'`` resolved: the shipped RAFT when usable, else DIS."""
+    if backend == "auto":
+        if model_path:
+            return "onnx", str(model_path)
+        shipped = shipped_flow_model()
+        return ("onnx", shipped) if shipped else ("dis", None)
+    if backend not in ("dis", "onnx"):
+        raise InputError(f"unknown flow backend {backend!r}.", fix="Use 'auto', 'dis' or 'onnx'.")
+    if backend == "onnx" and not model_path:
+        model_path = shipped_flow_model()
+        if model_path is None:
+            raise InputError("flow backend 'onnx' needs a model.", fix="Pass --flow-model PATH (a RAFT ONNX export).")
+    return backend, (str(model_path) if model_path else None)
+
+
+def working_size(H, W, max_width, min_width=0):
+    """``(h, w, scale)``: frames narrower than ``max_width`` keep their size, wider ones are
+    downscaled to it; narrower than ``min_width`` they are upscaled by the smallest integer
+    factor that reaches it (see :mod:`engine.priors.tracks` for why)."""
+    s = min(1.0, float(max_width) / W)
+    w, h = max(8, int(round(W * s))), max(8, int(round(H * s)))
+    up = int(np.ceil(min_width / w)) if min_width and w < min_width else 1
+    return h * up, w * up, (w * up) / W
 
 
 def to_gray_small(frames, max_width=480):
@@ -25,6 +87,99 @@ def dis_flow(a, b, preset="medium"):
          "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST}[preset]
     dis = cv2.DISOpticalFlow_create(p)
     return dis.calc(a, b, None)
+
+
+def raft_session(model_path):
+    """ONNX session of a RAFT-contract model; checks the input names (one clear error otherwise)."""
+    from . import onnx_util
+
+    sess = onnx_util.load_session(model_path)
+    names = [i.name for i in sess.get_inputs()]
+    if names[:2] != ["image1", "image2"]:
+        raise InputError(f"flow model inputs must be 'image1', 'image2', got {names}.", model_path,
+                         "Export RAFT with input names image1/image2 ([1,3,H,W] RGB 0..255).")
+    return sess
+
+
+def raft_flow(sess, a, b):
+    """Flow [h,w,2] from uint8 RGB ``a [h,w,3]`` to ``b`` with a RAFT-contract session (pads to /8)."""
+    h, w = a.shape[:2]
+    ph, pw = (-h) % 8, (-w) % 8
+
+    def prep(x):
+        x = np.pad(x, ((0, ph), (0, pw), (0, 0)), mode="edge") if (ph or pw) else x
+        return np.ascontiguousarray(x.transpose(2, 0, 1)[None], dtype=np.float32)
+
+    out = np.asarray(sess.run(None, {"image1": prep(a), "image2": prep(b)})[0], np.float32)
+    if out.ndim != 4 or out.shape[:2] != (1, 2) or out.shape[2] < h or out.shape[3] < w:
+        raise InputError(f"flow model output has shape {out.shape}; expected [1,2,H,W].")
+    return np.ascontiguousarray(out[0, :, :h, :w].transpose(1, 2, 0))
+
+
+class FlowSource:
+    """Memoised pairwise flows of one clip at a working size.
+
+    Parameters
+    ----------
+    frames : uint8 [F,H,W,3] RGB
+    backend : 'dis' | 'onnx'
+    model_path : RAFT-contract ONNX file (``onnx``)
+    max_width, min_width : working size (:func:`working_size`)
+    preset : DIS preset
+
+    Attributes
+    ----------
+    size : (h, w) working size; ``scale`` = w / W; ``gray`` uint8 [F,h,w]
+    """
+
+    def __init__(self, frames, backend="dis", model_path=None, max_width=480, min_width=0, preset="medium"):
+        import cv2
+
+        frames = np.asarray(frames)
+        F, H, W, _ = frames.shape
+        h, w, self.scale = working_size(H, W, max_width, min_width)
+        self.size = (h, w)
+        self.backend, self.model_path, self.preset = backend, model_path, preset
+        if backend == "dis":  # grey at max_width, then an integer cubic upscale (bit-exact with earlier releases)
+            gray = to_gray_small(frames, max_width)[0]
+            if gray.shape[1:] != (h, w):
+                gray = np.stack([cv2.resize(x, (w, h), interpolation=cv2.INTER_CUBIC) for x in gray])
+            self.gray, self.rgb = gray, None
+        else:
+            interp = cv2.INTER_AREA if w < W else cv2.INTER_CUBIC
+            self.rgb = np.stack([f if (w, h) == (W, H) else cv2.resize(f, (w, h), interpolation=interp)
+                                 for f in frames])
+            self.gray = np.stack([cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in self.rgb])
+        self._sess = raft_session(model_path) if backend == "onnx" else None
+        self._memo = {}
+
+    @property
+    def num_frames(self):
+        return len(self.gray)
+
+    def __call__(self, f, g):
+        """Flow [h,w,2] from frame ``f`` to frame ``g`` at the working size (memoised)."""
+        key = (int(f), int(g))
+        out = self._memo.get(key)
+        if out is None:
+            if self._sess is None:
+                out = dis_flow(self.gray[f], self.gray[g], self.preset)
+            else:
+                out = raft_flow(self._sess, self.rgb[f], self.rgb[g])
+            self._memo[key] = out
+        return out
+
+    def resampled(self, f, g, size):
+        """Flow ``f -> g`` resized to ``size = (h, w)`` with the vectors rescaled -> [h,w,2]."""
+        import cv2
+
+        fl = self(f, g)
+        h, w = size
+        if (h, w) == self.size:
+            return fl
+        out = cv2.resize(fl, (w, h), interpolation=cv2.INTER_LINEAR)
+        out[..., 0] *= w / self.size[1]; out[..., 1] *= h / self.size[0]
+        return out
 
 
 def bilinear(img, xy):

@@ -106,9 +106,10 @@ def _hysteresis(lo, hi):
 RIGID_FLOOR, SAMPSON_FLOOR = 0.25, 0.1
 
 
-def _pair_flows(gray, fb_px=1.0):
+def _pair_flows(gray, fb_px=1.0, source=None):
     """One-frame DIS flows forward/backward and their forward-backward consistency masks.
 
+    ``source`` : :class:`~engine.priors.flow.FlowSource`, optional (default: DIS on ``gray``).
     Returns ``(fw, bw, okf, okb)``: lists of F-1 ``[h,w,2]`` flows (t -> t+1, t+1 -> t) and float32
     ``[h,w]`` masks (1 where ``|fwd + bwd(p + fwd)| < fb_px + 0.05 |fwd|``). Independent of depth,
     so the mask -> depth -> mask pass reuses them.
@@ -116,8 +117,12 @@ def _pair_flows(gray, fb_px=1.0):
     import cv2
 
     F, h, w = gray.shape
-    fw = [_flow.dis_flow(gray[f], gray[f + 1], "medium") for f in range(F - 1)]
-    bw = [_flow.dis_flow(gray[f + 1], gray[f], "medium") for f in range(F - 1)]
+    if source is None:
+        fw = [_flow.dis_flow(gray[f], gray[f + 1], "medium") for f in range(F - 1)]
+        bw = [_flow.dis_flow(gray[f + 1], gray[f], "medium") for f in range(F - 1)]
+    else:  # a shared (e.g. learned) flow, resampled to this working size
+        fw = [source.resampled(f, f + 1, (h, w)) for f in range(F - 1)]
+        bw = [source.resampled(f + 1, f, (h, w)) for f in range(F - 1)]
     xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
 
     def fb_ok(a, b):
@@ -256,12 +261,13 @@ def _segment(sc, t_win=5, lo=1.5, hi=4.0, close_px=15, trim_px=7):
 
 
 def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, tex_eps=1e-3, reporter=None,
-                gaps=(1, 2, 4), lo=1.5, hi=4.0, t_win=5, close_px=15, trim_px=7, passes=2):
+                gaps=(1, 2, 4), lo=1.5, hi=4.0, t_win=5, close_px=15, trim_px=7, passes=2, source=None):
     """Weight-free motion prior (see module docstring) -> float32 [F,H,W].
 
     With depth, ``passes`` segmentations (mask -> depth -> mask): each one after the first
     recomputes the residual on the depth re-densified from the static part of the previous mask
-    (:func:`_refill`); the flows are computed once.
+    (:func:`_refill`); the flows are computed once. ``source`` : a shared
+    :class:`~engine.priors.flow.FlowSource` (default: DIS at ``max_width``).
     """
     import cv2
 
@@ -271,7 +277,7 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
     S = np.diag([w / W, h / H, 1.0])  # K at working resolution (continuous coords scale exactly)
     out = np.zeros((F, H, W), np.float32)
     if depth is not None and F >= 2:
-        flows = _pair_flows(gray)
+        flows = _pair_flows(gray, source=source)
         texw = np.stack([_texture_weight(x, tex_eps) for x in gray])
         guide = np.stack([cv2.resize(x, (w, h), interpolation=cv2.INTER_AREA) for x in frames]) if (w, h) != (W, H) else frames
         npass = max(1, int(passes))
@@ -291,7 +297,7 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
         nbrs = [g for g in (f - 1, f + 1) if 0 <= g < F]
         acc = []
         for g in nbrs:
-            fl = _flow.dis_flow(gray[f], gray[g], "medium")
+            fl = _flow.dis_flow(gray[f], gray[g], "medium") if source is None else source.resampled(f, g, (h, w))
             rel = w2c[g] @ np.linalg.inv(w2c[f])
             acc.append(_sampson(fl, S @ K[f], S @ K[g], rel))
         res[f] = np.mean(acc, 0) if acc else 0.0
@@ -356,13 +362,14 @@ def onnx_mask(frames, model_path, foreground_classes=None, background_class=None
 
 
 def dynamic_mask(frames, K, w2c, depth=None, backend="motion", model_path=None, max_width=320,
-                 foreground_classes=None, reporter=None):
+                 foreground_classes=None, reporter=None, source=None):
     """Dynamic / foreground probability per pixel.
 
     Parameters
     ----------
     frames : uint8 [F,H,W,3]; K : [F,3,3]; w2c : [F,4,4]; depth : [F,H,W], optional
     backend : 'motion' | 'onnx'
+    source : :class:`~engine.priors.flow.FlowSource`, optional (``motion``: the flow to use; default DIS)
 
     Returns
     -------
@@ -371,7 +378,7 @@ def dynamic_mask(frames, K, w2c, depth=None, backend="motion", model_path=None, 
     frames = np.asarray(frames)
     if backend == "motion":
         return motion_mask(frames, np.asarray(K, np.float64), np.asarray(w2c, np.float64), depth, max_width,
-                           reporter=reporter)
+                           reporter=reporter, source=source)
     if backend == "onnx":
         return onnx_mask(frames, model_path, foreground_classes, reporter=reporter)
     raise InputError(f"unknown dynamic-mask backend {backend!r}.", fix="Use 'motion' or 'onnx'.")

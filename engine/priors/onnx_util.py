@@ -4,7 +4,9 @@ A model is given by path. Optional sidecar ``<model>.json`` (next to the ``.onnx
 e.g. ``dinov2.onnx.json`` or ``dinov2.json``) overrides what is read from the graph:
 ``input_size`` ([H, W] or int), ``layout`` ("NCHW"|"NHWC"), ``mean``/``std`` (3 floats,
 applied to RGB in [0,1]), ``patch_size`` (ViT), ``output`` ("inverse"|"depth"),
-``background_class``/``foreground_classes`` (segmenters).
+``background_class``/``foreground_classes`` (segmenters), ``size_multiple`` and ``input_width``
+(models with dynamic H, W: the frame's aspect at ``input_width`` px, both sides rounded to a
+multiple of ``size_multiple``; see :func:`dynamic_input_size`).
 """
 
 from __future__ import annotations
@@ -94,3 +96,19 @@ def prepare_images(frames: np.ndarray, size, layout: str, mean, std) -> np.ndarr
     if layout == "NCHW":
         out = out.transpose(0, 3, 1, 2)
     return np.ascontiguousarray(out, dtype=np.float32)
+
+
+def has_dynamic_hw(session, layout: str) -> bool:
+    """True when the image input's H or W is not a fixed positive integer in the graph."""
+    shape = list(session.get_inputs()[0].shape)
+    hw = shape[2:4] if layout == "NCHW" else shape[1:3]
+    return not all(isinstance(d, int) and d > 0 for d in hw)
+
+
+def dynamic_input_size(H: int, W: int, width: int, multiple: int = 32):
+    """``(h, w)`` for a model with dynamic input size: the frame's aspect ``H:W`` at about
+    ``width`` px wide, each side rounded to the nearest multiple of ``multiple`` (at least one)."""
+    m = max(1, int(multiple))
+    w = max(m, int(round(float(width) / m)) * m)
+    h = max(m, int(round(float(width) * H / W / m)) * m)
+    return h, w

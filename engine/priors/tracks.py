@@ -58,56 +58,112 @@ def _seed(occupied_xy, h, w, cell, tex, margin=2.0):
     return xy
 
 
-def _working_gray(frames, max_width, min_width):
-    """Grey frames at the flow working width and their scale (working px per frame px)."""
+def _texture(g):
+    """Local gradient energy [h,w] of a grey frame (seeds only where the image has texture)."""
     import cv2
 
-    gray, s = _flow.to_gray_small(frames, max_width)
-    up = int(np.ceil(min_width / gray.shape[2])) if min_width and gray.shape[2] < min_width else 1
-    if up > 1:
-        gray = np.stack([cv2.resize(g, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC) for g in gray])
-        s = s * up
-    return gray, s
+    g = g.astype(np.float32) / 255.0
+    gx, gy = cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1)
+    return cv2.boxFilter(gx * gx + gy * gy, -1, (5, 5))
+
+
+def _moving_region(fwd, step=4, min_px=1.0, k=3.0):
+    """Bool [h,w]: pixels whose flow departs from the frame's dominant motion.
+
+    A homography fitted robustly (RANSAC) to a strided sample of the flow stands for the
+    camera-induced motion; a pixel is *moving* where its residual exceeds
+    ``max(min_px, median + k·1.4826·MAD)``. Coarse (parallax also shows up), used only to
+    seed tracks more densely there.
+    """
+    import cv2
+
+    h, w = fwd.shape[:2]
+    ys, xs = np.mgrid[step // 2:h:step, step // 2:w:step]
+    src = np.stack([xs + 0.5, ys + 0.5], -1).reshape(-1, 2).astype(np.float32)
+    dst = src + fwd[ys, xs].reshape(-1, 2)
+    if len(src) < 8:
+        return np.zeros((h, w), bool)
+    Hm, _ = cv2.findHomography(src, dst, cv2.RANSAC, 1.0)
+    if Hm is None:
+        return np.zeros((h, w), bool)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    pts = np.stack([xx + 0.5, yy + 0.5], -1).reshape(-1, 1, 2)
+    pred = cv2.perspectiveTransform(pts, Hm).reshape(h, w, 2)
+    r = np.linalg.norm(pts.reshape(h, w, 2) + fwd - pred, axis=-1)
+    med = float(np.median(r)); mad = 1.4826 * float(np.median(np.abs(r - med)))
+    return r > max(min_px, med + k * mad)
+
+
+def _fb(source, f, g, p):
+    """Advance ``p [P,2]`` by flow ``f -> g``: ``(q [P,2], fb error [P], |d| [P])``."""
+    d = _flow.bilinear(source(f, g), p)
+    q = p + d
+    return q, np.linalg.norm(d + _flow.bilinear(source(g, f), q), axis=1), np.linalg.norm(d, axis=1)
 
 
 def flow_tracks(frames, num_points=2000, max_width=480, fb_thresh=1.0, fb_rel=0.05, preset="medium",
-                reporter=None, min_width=400):
-    """Chained-DIS tracks (see module docstring). Returns :class:`Tracks`."""
-    import cv2
+                reporter=None, min_width=400, source=None, bridge_gaps=(), bridge_min=4, dense_moving=True):
+    """Chained-flow tracks (see module docstring). Returns :class:`Tracks`.
 
+    ``source`` : :class:`~engine.priors.flow.FlowSource` (default: DIS at ``max_width`` /
+    ``min_width``). ``bridge_gaps`` : direct multi-frame flows tried, in order, for tracks that
+    fail the one-frame forward-backward check (only when at least ``bridge_min`` fail in that
+    step). ``dense_moving`` : re-seed at half the grid cell inside moving regions.
+    """
     F, H, W, _ = frames.shape
-    gray, s = _working_gray(frames, max_width, min_width)
+    if source is None:
+        source = _flow.FlowSource(frames, "dis", None, max_width, min_width, preset)
+    gray, s = source.gray, source.scale
     h, w = gray.shape[1:]
     cell = max(2.0, float(np.sqrt(h * w / max(int(num_points), 1))))
 
-    def texture(g):
-        g = g.astype(np.float32) / 255.0
-        gx, gy = cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1)
-        return cv2.boxFilter(gx * gx + gy * gy, -1, (5, 5))
+    def inside(q):
+        return (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
 
-    pos = _seed(np.zeros((0, 2), np.float32), h, w, cell, texture(gray[0]))
+    pos = _seed(np.zeros((0, 2), np.float32), h, w, cell, _texture(gray[0]))
     hist_xy, hist_vis, hist_conf = [], [], []  # per frame arrays over all tracks so far
     qf = np.zeros(len(pos), np.int64)
     alive = np.ones(len(pos), bool)
     cur = pos.copy()
     conf = np.ones(len(pos), np.float32)
+    land = {}  # frame -> (track indices, positions, confidences) of bridged tracks landing there
     hist_xy.append(cur.copy()); hist_vis.append(alive.copy()); hist_conf.append(conf.copy())
     for f in range(F - 1):
-        fwd = _flow.dis_flow(gray[f], gray[f + 1], preset)
-        bwd = _flow.dis_flow(gray[f + 1], gray[f], preset)
         idx = np.nonzero(alive)[0]
         p = cur[idx]
-        d = _flow.bilinear(fwd, p)
-        q = p + d
-        err = np.linalg.norm(d + _flow.bilinear(bwd, q), axis=1)
-        thr = fb_thresh + fb_rel * np.linalg.norm(d, axis=1)
-        inside = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
-        ok = inside & (err <= thr)
+        q, err, mag = _fb(source, f, f + 1, p)
+        ok = inside(q) & (err <= fb_thresh + fb_rel * mag)
         cur[idx] = q
         alive[idx[~ok]] = False
         conf[idx] = np.where(ok, np.exp(-err / max(fb_thresh, 1e-6)), 0.0)
+        # bridge: a point lost between f and f+1 (blur, brief occlusion) may be found at f+k
+        todo, pt = idx[~ok], p[~ok]
+        for k in bridge_gaps if len(todo) >= bridge_min else ():
+            if f + k >= F or not len(todo):
+                break
+            qk, ek, mk = _fb(source, f, f + k, pt)
+            good = inside(qk) & (ek <= fb_thresh + fb_rel * mk)
+            if good.any():
+                prev = land.get(f + k)
+                new = (todo[good], qk[good], np.exp(-ek[good] / max(fb_thresh, 1e-6)).astype(np.float32))
+                land[f + k] = new if prev is None else tuple(np.concatenate([a, b]) for a, b in zip(prev, new))
+            todo, pt = todo[~good], pt[~good]
         conf[~alive] = 0.0
-        new = _seed(cur[alive], h, w, cell, texture(gray[f + 1]))
+        if f + 1 in land:
+            li, lq, lc = land.pop(f + 1)
+            li, first = np.unique(li, return_index=True)
+            keep = ~alive[li]
+            cur[li[keep]], conf[li[keep]], alive[li[keep]] = lq[first][keep], lc[first][keep], True
+        tex = _texture(gray[f + 1])
+        new = _seed(cur[alive], h, w, cell, tex)
+        if dense_moving:
+            mov = _moving_region(source(f, f + 1))
+            fine = _seed(np.concatenate([cur[alive], new]), h, w, cell / 2, tex)
+            if len(fine):
+                # moving region of frame f, looked up where the fine seed came from (one-step back-warp)
+                back = fine + _flow.bilinear(source(f + 1, f), fine)
+                m = _flow.bilinear(mov[..., None].astype(np.float32), back)[:, 0] > 0.5
+                new = np.concatenate([new, fine[m]])
         if len(new):
             cur = np.concatenate([cur, new]); alive = np.concatenate([alive, np.ones(len(new), bool)])
             conf = np.concatenate([conf, np.ones(len(new), np.float32)])
@@ -115,7 +171,12 @@ def flow_tracks(frames, num_points=2000, max_width=480, fb_thresh=1.0, fb_rel=0.
         hist_xy.append(cur.copy()); hist_vis.append(alive.copy()); hist_conf.append(conf.copy())
         if reporter is not None:
             reporter.progress("tracks", f + 1, F - 1, points=int(alive.sum()))
-    P = len(cur)
+    return _assemble(hist_xy, hist_vis, hist_conf, qf, F, s)
+
+
+def _assemble(hist_xy, hist_vis, hist_conf, qf, F, s):
+    """Per-frame histories -> :class:`Tracks` in frame pixels (``s`` = working px per frame px)."""
+    P = len(hist_xy[-1])
     xy = np.zeros((P, F, 2), np.float32)
     vis = np.zeros((P, F), bool)
     cf = np.zeros((P, F), np.float32)
@@ -154,7 +215,7 @@ def onnx_tracks(frames, model_path, num_points=2000):
 
 
 def track_points(frames, num_points=2000, backend="flow", model_path=None, max_width=480, fb_thresh=1.0,
-                 fb_rel=0.05, preset="medium", reporter=None, min_width=400):
+                 fb_rel=0.05, preset="medium", reporter=None, min_width=400, source=None, **kw):
     """Long 2D tracks over the whole clip.
 
     Parameters
@@ -165,6 +226,8 @@ def track_points(frames, num_points=2000, backend="flow", model_path=None, max_w
     max_width : flow working width (px); wider frames are downscaled
     min_width : narrower frames are upscaled by an integer factor to at least this width
     fb_thresh, fb_rel : forward-backward threshold in working px, absolute + relative to |flow|
+    source : :class:`~engine.priors.flow.FlowSource`, optional (``flow`` backend; default DIS)
+    **kw : bridging / seeding options of :func:`flow_tracks`
 
     Returns
     -------
@@ -174,7 +237,7 @@ def track_points(frames, num_points=2000, backend="flow", model_path=None, max_w
     if frames.ndim != 4 or frames.dtype != np.uint8:
         raise InputError(f"frames must be uint8 [F,H,W,3], got {frames.dtype} {frames.shape}.")
     if backend == "flow":
-        return flow_tracks(frames, num_points, max_width, fb_thresh, fb_rel, preset, reporter, min_width)
+        return flow_tracks(frames, num_points, max_width, fb_thresh, fb_rel, preset, reporter, min_width, source, **kw)
     if backend == "onnx":
         return onnx_tracks(frames, model_path, num_points)
     raise InputError(f"unknown tracks backend {backend!r}.", fix="Use 'flow' or 'onnx'.")
