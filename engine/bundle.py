@@ -15,6 +15,7 @@ import dataclasses
 import json
 import math
 import os
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -136,7 +137,10 @@ def read_ply(path: str | os.PathLike) -> GaussianArrays:
     end = raw.find(b"end_header")
     if not raw.startswith(b"ply") or end < 0:
         raise InputError("not a PLY file (missing 'ply' magic or 'end_header')", path, fix)
-    body_start = raw.index(b"\n", end) + 1
+    newline = raw.find(b"\n", end)
+    if newline < 0:
+        raise InputError("PLY header does not end with a newline after 'end_header' (truncated file)", path, fix)
+    body_start = newline + 1
     lines = raw[:end].decode("ascii", errors="replace").splitlines()
     if "format binary_little_endian 1.0" not in [ln.strip() for ln in lines]:
         raise InputError("only binary_little_endian PLY files are supported", path, fix)
@@ -149,10 +153,15 @@ def read_ply(path: str | os.PathLike) -> GaussianArrays:
         if parts[0] == "element":
             in_vertex = parts[1] == "vertex"
             if in_vertex:
+                if len(parts) < 3 or not parts[2].isdigit():
+                    raise InputError(f"PLY vertex count {' '.join(parts[2:])!r} is not a non-negative integer",
+                                     path, fix)
                 count = int(parts[2])
             elif count is not None:
                 break  # vertex element comes first in 3DGS files; ignore later ones
         elif parts[0] == "property" and in_vertex:
+            if len(parts) < 3:
+                raise InputError(f"malformed PLY property line {ln.strip()!r}", path, fix)
             if parts[1] not in type_sizes:
                 raise InputError(f"vertex property {parts[-1]!r} has type {parts[1]!r}; expected float", path, fix)
             names.append(parts[2])
@@ -184,9 +193,31 @@ def read_ply(path: str | os.PathLike) -> GaussianArrays:
         opacity_logits=data[:, col["opacity"]],
         sh=sh,
     )
-    if not np.isfinite(g.means).all():
-        raise InputError("PLY has non-finite Gaussian positions", path, fix)
+    check_gaussians(g, path)
     return g
+
+
+#: largest log-scale a Gaussian may have: exp(20) ~ 5e8 scene units. Beyond it the
+#: covariance overflows float32 (``scale_0 = 80`` renders black) -- a broken file, not a splat.
+MAX_LOG_SCALE = 20.0
+
+
+def check_gaussians(g: GaussianArrays, path: str | os.PathLike | None = None) -> None:
+    """Refuse non-finite or overflowing Gaussian values, naming the PLY property."""
+    fix = "re-export the Gaussians from a finished training run (`python -m engine train`)"
+    for name, arr in (("x/y/z", g.means), ("opacity", g.opacity_logits), ("scale_*", g.log_scales),
+                      ("rot_*", g.quats), ("f_dc_*/f_rest_*", g.sh)):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            row = int(np.argwhere(bad)[0][0])
+            raise InputError(f"PLY property {name} has NaN or infinite values ({int(bad.sum())}, first at vertex "
+                             f"{row})", path, fix)
+    if g.count and (g.log_scales > MAX_LOG_SCALE).any():
+        row = int(np.argwhere(g.log_scales > MAX_LOG_SCALE)[0][0])
+        raise InputError(f"PLY property scale_* is {float(g.log_scales.max()):g} at vertex {row} (log scale above "
+                         f"{MAX_LOG_SCALE:g}: the Gaussian would cover everything)", path, fix)
+    if g.count and (np.linalg.norm(g.quats, axis=1) < 1e-12).any():
+        raise InputError("PLY property rot_* has a zero quaternion", path, fix)
 
 
 # ----------------------------------------------------------------------------------
@@ -300,8 +331,9 @@ def read_nodes(path: str | os.PathLike) -> NodeArrays:
             arrays = {k: data[k] for k in data.files}
     except FileNotFoundError:
         raise InputError("node file not found", path, "point to a bundle folder written by the engine") from None
-    except (OSError, ValueError, EOFError) as exc:
-        raise InputError(f"cannot read node file ({exc})", path, "re-run the engine to regenerate it") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        raise InputError(f"cannot read node file: corrupt or truncated ({type(exc).__name__}: {exc})", path,
+                         "re-run the engine to regenerate it (or restore it from a backup)") from None
     return NodeArrays.from_dict(arrays, path)
 
 
@@ -314,6 +346,29 @@ def _is_matrix(value: Any, rows: int, cols: int) -> bool:
     except (TypeError, ValueError):
         return False
     return arr.shape == (rows, cols) and bool(np.isfinite(arr).all())
+
+
+#: largest image side a camera may ask for (a 16K frame); beyond it a render cannot be allocated
+MAX_IMAGE_SIDE = 16384
+
+
+def camera_problem(K, w2c, width: int, height: int) -> str | None:
+    """What is wrong with one pinhole camera (``K [3,3]``, ``w2c [4,4]`` OpenCV), or ``None``.
+
+    Checks a positive focal length, a rotation block that is a rotation (det 1, orthonormal
+    to 1e-3) and an image size within :data:`MAX_IMAGE_SIDE`.
+    """
+    K, w2c = np.asarray(K, dtype=np.float64), np.asarray(w2c, dtype=np.float64)
+    if not (np.isfinite(K).all() and np.isfinite(w2c).all()):
+        return "has NaN or infinite values in K or w2c"
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        return f"has a non-positive focal length (fx={K[0, 0]:g}, fy={K[1, 1]:g}) in K"
+    R = w2c[:3, :3]
+    if abs(np.linalg.det(R) - 1) > 1e-3 or np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
+        return "has a w2c whose 3x3 block is not a rotation (singular, scaled or mirrored)"
+    if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
+        return f"asks for a {width}x{height} image; width and height must be 1..{MAX_IMAGE_SIDE}"
+    return None
 
 
 def validate_scene(scene: Any, path: str | os.PathLike | None = None) -> dict:
@@ -346,6 +401,9 @@ def validate_scene(scene: Any, path: str | os.PathLike | None = None) -> dict:
             raise InputError(f"camera {i} needs positive integer width/height", path, fix)
         if not isinstance(t, (int, float)) or not 0.0 <= t <= 1.0:
             raise InputError(f"camera {i} time {t!r} is outside [0, 1]", path, fix)
+        problem = camera_problem(cam["K"], cam["w2c"], w, h)
+        if problem:
+            raise InputError(f"camera {i} {problem}", path, fix)
     units = scene.get("units", 1.0)
     if not isinstance(units, (int, float)) or not units > 0:
         raise InputError("'units' must be a positive number", path, fix)
@@ -487,18 +545,22 @@ def clear_run_outputs(path: str | os.PathLike) -> list[str]:
     return removed
 
 
-def check_output_dir(path: str | os.PathLike, overwrite: bool = False, resume: bool = False) -> Path:
+def check_output_dir(path: str | os.PathLike, overwrite: bool = False, resume: bool = False,
+                     resumable: bool = True, option: str = "--out") -> Path:
     """Refuse to write into a folder that already holds results unless asked to.
 
     Raises :class:`InputError` when ``path`` exists and is a non-empty folder, unless
     ``overwrite`` or ``resume`` is set (earlier results are never clobbered silently).
+    ``resumable=False`` (render, export) leaves ``--resume`` out of the advice. The lock
+    file of :mod:`engine.lock` does not count as content.
     """
     path = Path(path)
     if path.exists() and not path.is_dir():
-        raise InputError("output path exists and is not a folder", path, "choose a folder path for --out")
-    if path.is_dir() and any(path.iterdir()) and not (overwrite or resume):
-        raise InputError("output folder already holds files", path,
-                         "choose a new --out folder, pass --resume to continue that run, or --overwrite to replace it")
+        raise InputError(f"{option} exists and is not a folder", path, f"choose a folder path for {option}")
+    if path.is_dir() and any(p.name != ".motion-splats.lock" for p in path.iterdir()) and not (overwrite or resume):
+        fix = (f"choose a new {option} folder, pass --resume to continue that run, or --overwrite to replace it"
+               if resumable else f"choose a new or empty {option} folder, or pass --overwrite to write into it")
+        raise InputError("output folder already holds files", path, fix)
     if resume and not overwrite:
         refuse_finished_resume(path)
     return path
@@ -530,3 +592,16 @@ def refuse_finished_resume(path: str | os.PathLike) -> None:
     if steps is not None:
         raise InputError(f"this bundle is a finished run ({steps} steps); there is no checkpoint to resume", path,
                          "drop --resume to keep it, pass --overwrite to train it again, or choose a new --out")
+
+
+def check_not_input(out: str | os.PathLike, clip: str | os.PathLike, option: str = "--out") -> None:
+    """Refuse an output folder that is the input clip's folder (or holds the input clip).
+
+    A bundle written there would replace the dataset's own files (a Nerfies ``scene.json``)
+    and ``--overwrite`` would clear them.
+    """
+    out_r, clip_r = Path(out).resolve(), Path(clip).resolve()
+    inputs = {clip_r} | ({clip_r.parent} if clip_r.is_file() else set())
+    if out_r in inputs or out_r in clip_r.parents:
+        raise InputError(f"{option} is the input clip's folder (or contains it); the engine never writes into its "
+                         "input", out, f"choose a separate {option} folder, e.g. {clip_r.parent / 'run'}")

@@ -14,7 +14,7 @@ import signal
 import sys
 
 from . import __version__
-from .errors import EngineError
+from .errors import EngineError, describe_os_error
 from .protocol import Reporter
 
 #: Command modules under ``engine.commands``, in the order ``--help`` lists them.
@@ -67,6 +67,9 @@ def _raise_keyboard_interrupt(signum, frame):  # SIGTERM -> same clean path as C
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     reporter = Reporter(jsonl=args.jsonl, quiet=args.quiet)
+    if args.threads is not None and not 1 <= args.threads <= 1024:
+        reporter.error(f"--threads must be between 1 and 1024 (got {args.threads})", fix="e.g. --threads 4")
+        return 2
     if args.threads:
         import os
 
@@ -85,6 +88,10 @@ def main(argv: list[str] | None = None) -> int:
     except EngineError as exc:
         reporter.error(getattr(exc, "message", str(exc)), path=getattr(exc, "path", None), fix=getattr(exc, "fix", None))
         return exc.exit_code
+    except OSError as exc:  # a write failed: read-only or full disk, a parent that is a file, ...
+        message, path, fix = describe_os_error(exc)
+        reporter.error(message, path=path, fix=fix)
+        return 2
     except KeyboardInterrupt:
         reporter.error("interrupted; state saved where the command supports it", fix="re-run with --resume")
         return 130

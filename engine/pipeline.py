@@ -299,15 +299,16 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
     from .train.trainer import Trainer
 
     reporter = reporter or Reporter(quiet=True)
+    B.check_not_input(out_dir, clip_path)
     out_dir = B.check_output_dir(out_dir, overwrite=overwrite, resume=resume)
-    if overwrite and not resume:
-        B.clear_run_outputs(out_dir)
     clip = open_clip(clip_path, reporter, **(clip_options or {}))
     prep = prepare(clip, cfg, prior_config, cache_dir=cache_dir or Path(out_dir) / "cache", reporter=reporter)
     # the bundle's config records what ran: "auto" decided by where the depth came from
     cfg = dataclasses.replace(cfg, motion_init=resolve_motion_init(prep, cfg))
     reporter.log(f"node motion starts from {'lifted tracks' if cfg.motion_init == 'tracks' else 'rest'} "
                  f"(depth prior: {prep.priors.depth_source})")
+    if overwrite and not resume:  # the input is read and validated: only now replace the earlier run
+        B.clear_run_outputs(out_dir)
     nodes_path = Path(out_dir) / B.NODES_FILE
     if resume and nodes_path.exists():
         nodes = B.read_nodes(nodes_path)

@@ -7,13 +7,24 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bundle import camera_problem
 from ..errors import InputError
 
 
-def parse_frames(spec: str | None, frame_start: int, frame_end: int) -> list[int]:
-    """``"all"``/None, ``"a-b"``, ``"a-b:step"`` or ``"1,5,9"`` -> sorted frame list."""
+#: most frames one command may be asked for (a day of footage at 60 fps is 5.2 million)
+MAX_FRAMES = 100_000
+
+
+def parse_frames(spec: str | None, frame_start: int, frame_end: int, option: str = "--frames") -> list[int]:
+    """``"all"``/None, ``"a-b"``, ``"a-b:step"`` or ``"1,5,9"`` -> sorted frame list.
+
+    Frames must lie in ``frame_start..frame_end`` (the bundle's range); a list of more
+    than :data:`MAX_FRAMES` frames is refused before it is built.
+    """
     if spec in (None, "", "all"):
         return list(range(frame_start, frame_end + 1))
+    fix = f"use e.g. {frame_start}-{frame_end}, {frame_start}-{frame_end}:4 or {frame_start},{frame_end} " \
+          f"(the bundle has frames {frame_start}..{frame_end})"
     frames: set[int] = set()
     try:
         for part in spec.split(","):
@@ -22,13 +33,23 @@ def parse_frames(spec: str | None, frame_start: int, frame_end: int) -> list[int
             if ":" in part:
                 part, step_s = part.split(":")
                 step = int(step_s)
+            if step < 1:
+                raise ValueError
             if "-" in part[1:]:
                 a, b = part[0] + part[1:].split("-", 1)[0], part[1:].split("-", 1)[1]
-                frames.update(range(int(a), int(b) + 1, step))
+                lo, hi = int(a), int(b)
+                if hi < lo or (hi - lo) // step + 1 + len(frames) > MAX_FRAMES:
+                    raise InputError(f"{option} {spec!r} asks for {max(0, (hi - lo) // step + 1)} frames "
+                                     f"(at most {MAX_FRAMES}, ranges low-high)", None, fix)
+                frames.update(range(lo, hi + 1, step))
             else:
                 frames.add(int(part))
     except ValueError:
-        raise InputError(f"cannot parse frame list {spec!r}", None, "use e.g. 1-48, 1-48:4 or 1,12,24") from None
+        raise InputError(f"cannot parse {option} {spec!r}", None, fix) from None
+    outside = [f for f in frames if not frame_start <= f <= frame_end]
+    if outside:
+        raise InputError(f"{option} {spec!r} includes frame {min(outside, key=lambda f: abs(f - frame_start))} "
+                         f"outside the bundle's {frame_start}..{frame_end}", None, fix)
     return sorted(frames)
 
 
@@ -41,6 +62,8 @@ def load_camera_path(path: str | Path) -> list[dict]:
     path = Path(path)
     fix = "export the camera path from Blender (Motion Splats › Export camera path)"
     try:
+        if path.stat().st_size > 256 << 20:
+            raise InputError("camera path file is larger than 256 MB", path, fix)
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError("camera path file not found", path, fix) from None
@@ -59,10 +82,11 @@ def load_camera_path(path: str | Path) -> list[dict]:
             w, h, f = int(c["width"]), int(c["height"]), float(c["frame"])
         except (KeyError, TypeError, ValueError):
             raise InputError(f"camera {i} needs frame, K (3x3), w2c (4x4), width, height", path, fix) from None
-        if K.shape != (3, 3) or w2c.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(w2c).all()):
-            raise InputError(f"camera {i} has a malformed or non-finite K/w2c", path, fix)
-        if abs(np.linalg.det(w2c[:3, :3]) - 1) > 1e-3 or w <= 0 or h <= 0:
-            raise InputError(f"camera {i} has a non-rotation w2c or a bad image size", path, fix)
+        if K.shape != (3, 3) or w2c.shape != (4, 4) or not np.isfinite(f):
+            raise InputError(f"camera {i} has a malformed K/w2c or frame", path, fix)
+        problem = camera_problem(K, w2c, w, h)
+        if problem:
+            raise InputError(f"camera {i} {problem}", path, fix)
         out.append({"frame": f, "K": K, "w2c": w2c, "width": w, "height": h})
     return out
 

@@ -53,7 +53,7 @@ def config_from_args(args):
     from pathlib import Path
 
     from ..errors import InputError
-    from ..train.config import preset_config
+    from ..train.config import PRESETS, TrainConfig, preset_config
 
     overrides = {}
     if args.config:
@@ -63,13 +63,17 @@ def config_from_args(args):
             raise InputError(f"cannot read config JSON ({exc})", args.config, "pass a JSON object of TrainConfig keys")
         if not isinstance(overrides, dict):
             raise InputError("config must be a JSON object", args.config, "e.g. {\"steps\": 2000}")
+        # validated on its own first, so its errors name the file and the key
+        TrainConfig.from_dict({**PRESETS.get(args.preset, {}), **overrides, "preset": args.preset}, args.config)
+    options = {}
     for key in ("width", "steps", "num_nodes", "init", "motion", "motion_init", "seed", "device", "backend"):
         value = getattr(args, key, None)
         if value is not None:
-            overrides[key] = value
+            options[key] = value
     if getattr(args, "max_frames", None):
-        overrides["max_frames"] = args.max_frames
-    return preset_config(args.preset, **overrides)
+        options["max_frames"] = args.max_frames
+    preset_config(args.preset, source="command-line options", **options)
+    return preset_config(args.preset, **{**overrides, **options})
 
 
 def prior_config_from_args(args):
@@ -102,3 +106,24 @@ def clip_options(args) -> dict:
     if getattr(args, "fov", None):
         out["fov_deg"] = args.fov
     return out
+
+
+def check_run_output(args) -> None:
+    """Everything about ``--out`` that can be checked before minutes of work: not the input,
+    not a file, not a finished run for ``--resume``, a readable checkpoint to resume, the
+    clip path exists."""
+    from pathlib import Path
+
+    from .. import bundle as B
+    from ..errors import InputError
+
+    if not Path(args.clip).exists():
+        raise InputError("clip path does not exist", args.clip, "check the clip path")
+    B.check_not_input(args.out, args.clip)
+    resume = getattr(args, "resume", False)
+    B.check_output_dir(args.out, overwrite=args.overwrite, resume=resume)
+    ckpt = Path(args.out) / "checkpoints" / "checkpoint.pt"
+    if resume and ckpt.exists():
+        from ..train.checkpoint import load_state
+
+        load_state(ckpt)  # unreadable / pickled / incomplete: refused now, not after the priors

@@ -44,11 +44,12 @@ def run(args, reporter):
         B.write_ply(target, bundle.gaussians)
         results["ply"] = str(target)
     if args.ply_sequence:
-        out_dir = B.check_output_dir(args.ply_sequence, overwrite=args.overwrite)
-        out_dir.mkdir(parents=True, exist_ok=True)
+        out_dir = B.check_output_dir(args.ply_sequence, overwrite=args.overwrite, resumable=False,
+                                     option="--ply-sequence")
         model = model_from_bundle(bundle)
         tm = bundle.scene["time"]
         frames = parse_frames(args.frames, int(tm["frame_start"]), int(tm["frame_end"]))
+        out_dir.mkdir(parents=True, exist_ok=True)  # after the checks
         g = bundle.gaussians
         with torch.no_grad():
             for i, f in enumerate(frames):

@@ -27,6 +27,7 @@ so). Ctrl-C / Cancel stops without changing anything.
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -176,11 +177,23 @@ def _backup(bundle_dir: Path, names) -> Path:
     while dest.exists():
         n += 1
         dest = base / f"finetune-{stamp}-{n}"
-    dest.mkdir(parents=True)
-    for name in names:
-        src = bundle_dir / name
-        if src.is_file():
-            shutil.copy2(src, dest / name)
+    # copied into a hidden sibling, renamed when complete: a full disk or a kill leaves no
+    # truncated backup that looks whole
+    partial = base / f".{dest.name}.partial"
+    if partial.exists():
+        shutil.rmtree(partial)
+    partial.mkdir(parents=True)
+    try:
+        for name in names:
+            src = bundle_dir / name
+            if src.is_file():
+                shutil.copy2(src, partial / name)
+                with open(partial / name, "rb") as fh:
+                    os.fsync(fh.fileno())
+        os.replace(partial, dest)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
     return dest
 
 
@@ -253,10 +266,9 @@ def run(args, reporter):
     device = pick_device(args.device)
     torch.manual_seed(args.seed)
     model = model_from_bundle(bundle, device)
-    try:
-        cfg = TrainConfig.from_dict(bundle.scene.get("config") or {}, str(Path(args.bundle) / B.SCENE_FILE))
-    except Exception:  # noqa: BLE001 (an older/foreign config: default learning rates are fine)
-        cfg = TrainConfig()
+    # the learning rates come from the bundle's config: an invalid one is refused (its error
+    # names scene.json and the key), never silently replaced by defaults
+    cfg = TrainConfig.from_dict(bundle.scene.get("config") or {}, str(Path(args.bundle) / B.SCENE_FILE))
     views = training_views(bundle, args.clip, device, reporter)
     reporter.log(f"fine-tuning appearance of {model.num_gaussians} Gaussians on {len(views)} views, "
                  f"{model.num_nodes} nodes locked, {args.steps} steps")

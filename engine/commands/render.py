@@ -62,10 +62,12 @@ def run(args, reporter):
 
     import cv2
 
+    if args.time is not None and not 0.0 <= args.time <= 1.0:  # also refuses nan
+        raise InputError(f"--time {args.time} is outside [0, 1] (engine time: 0 = first frame, 1 = last)", None,
+                         "pass a number between 0 and 1, or leave --time out")
+    out_dir = check_output_dir(args.out, overwrite=args.overwrite, resumable=False)
     bundle = B.load_bundle(args.bundle)
     scene = bundle.scene
-    out_dir = check_output_dir(args.out, overwrite=args.overwrite)
-    out_dir.mkdir(parents=True, exist_ok=True)
     device = pick_device(args.device)
     model = model_from_bundle(bundle, device)
     tm = scene["time"]
@@ -76,6 +78,7 @@ def run(args, reporter):
     if not views:
         raise InputError("no frames to render", Path(args.camera) if args.camera not in ("train", "val") else None,
                          "check --frames against the bundle's frame range")
+    out_dir.mkdir(parents=True, exist_ok=True)  # after every check: a refused render creates nothing
     written = []
     with torch.no_grad():
         for i, (frame, K, w2c, w, h) in enumerate(views):
@@ -88,7 +91,8 @@ def run(args, reporter):
             path = out_dir / f"frame_{int(round(frame)):05d}.png"
             with atomic_path(path) as tmp:
                 if not cv2.imwrite(str(tmp), img[..., ::-1]):
-                    raise InputError("could not write PNG", path, "check the folder is writable")
+                    raise InputError("could not write PNG (disk full, or the folder is not writable)", path,
+                                     "free disk space or choose a writable --out folder")
             written.append(str(path))
             reporter.progress("render", i + 1, len(views))
     reporter.result(out=str(out_dir), frames=len(written), files=written[:3] + (["..."] if len(written) > 3 else []))

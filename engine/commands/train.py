@@ -10,7 +10,8 @@ Progress is a tqdm bar on a terminal, or JSON lines with --jsonl. Ctrl-C (or SIG
 stops after the current step and writes a checkpoint; --resume continues it.
 """
 
-from ._train_options import add_clip_options, clip_options, config_from_args, prior_config_from_args
+from ._train_options import (add_clip_options, check_run_output, clip_options, config_from_args,
+                             prior_config_from_args)
 
 HELP = "reconstruct a clip into a trained result bundle (resumable)"
 
@@ -21,12 +22,15 @@ def add_arguments(parser):
 
 
 def run(args, reporter):
+    from ..lock import hold
     from ..pipeline import reconstruct
 
     cfg = config_from_args(args)
-    result = reconstruct(args.clip, args.out, cfg, reporter, resume=args.resume, overwrite=args.overwrite,
-                         cache_dir=args.cache, prior_config=prior_config_from_args(args),
-                         clip_options=clip_options(args))
+    check_run_output(args)
+    with hold(args.out):
+        result = reconstruct(args.clip, args.out, cfg, reporter, resume=args.resume, overwrite=args.overwrite,
+                             cache_dir=args.cache, prior_config=prior_config_from_args(args),
+                             clip_options=clip_options(args))
     result["report"] = _write_report(result.get("bundle", args.out), reporter, cfg.device, cfg.backend)
     reporter.result(**result)
     return 0

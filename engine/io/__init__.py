@@ -35,7 +35,20 @@ __all__ = ["Clip", "FrameSource", "load_clip", "load_nerfies", "load_dnerf", "lo
 
 
 def load_clip(path, **options) -> Clip:
-    """Read a clip from any supported layout (see module doc); options go to the reader."""
+    """Read a clip from any supported layout (see module doc); options go to the reader.
+
+    A reader that trips over a malformed file in a way it does not check itself (a value
+    of the wrong type deep in a dataset) still ends in one :class:`InputError` naming the
+    clip, never a traceback.
+    """
+    try:
+        return _load_clip(path, **options)
+    except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
+        raise InputError(f"malformed clip data ({type(exc).__name__}: {str(exc)[:160]}).", path,
+                         "Check the dataset files against the documented layout (docs/clip_manifest.md).") from None
+
+
+def _load_clip(path, **options) -> Clip:
     p = Path(path)
     if not p.exists():
         raise InputError("path does not exist.", p, "Check the clip path.")

@@ -97,6 +97,29 @@ def reconstruction_cameras(rec, names=None):
     return [im.name for im in imgs], np.asarray(Ks).reshape(-1, 3, 3), np.asarray(w2cs).reshape(-1, 4, 4), dist, sizes
 
 
+#: smallest record of each COLMAP binary file (bytes): camera id+model+w+h, image
+#: id+qvec+tvec+camera+name NUL+point count, point id+xyz+rgb+error+track length
+_MIN_RECORD = {"cameras.bin": 24, "images.bin": 73, "points3D.bin": 51}
+
+
+def check_binary_counts(model: Path) -> None:
+    """Refuse a binary model whose record count cannot fit in its file.
+
+    Each ``.bin`` starts with a uint64 count; a truncated or forged header (4 bytes
+    claiming 2^31 points) made pycolmap allocate tens of GB before failing.
+    """
+    for name, size in _MIN_RECORD.items():
+        f = Path(model) / name
+        if not f.is_file():
+            continue
+        n_bytes = f.stat().st_size
+        head = f.read_bytes()[:8] if n_bytes >= 8 else b""
+        count = int.from_bytes(head, "little") if head else -1
+        if count < 0 or count * size > n_bytes - 8:
+            raise InputError(f"{name} is truncated or corrupt: its header claims {max(count, 0)} records but the "
+                             f"file has {n_bytes} bytes.", f, "Re-export the model from COLMAP.")
+
+
 def load_colmap(path, image_dir=None, fps: float = 0.0, scale: int = 1) -> Clip:
     """Read a COLMAP sparse model and its images.
 
@@ -118,6 +141,7 @@ def load_colmap(path, image_dir=None, fps: float = 0.0, scale: int = 1) -> Clip:
     if model is None:
         raise InputError("no COLMAP model (cameras/images/points3D .bin or .txt).", root,
                          "Point at the folder with sparse/0 or the model files.")
+    check_binary_counts(model)
     try:
         rec = pycolmap.Reconstruction(str(model))
     except Exception as exc:  # pycolmap raises generic errors on corrupt files

@@ -40,6 +40,14 @@ def _resolve(root: Path, fp: str, jpath: Path) -> Path:
     raise InputError(f"image '{fp}' is missing.", jpath, "Check file_path entries point at existing images.")
 
 
+def _check_numbers(obj: dict, keys, jpath: Path, where: str) -> None:
+    """Refuse a present key whose value is not a finite number (a string, a list, NaN)."""
+    for key in keys:
+        v = obj.get(key)
+        if key in obj and (not isinstance(v, (int, float)) or isinstance(v, bool) or not np.isfinite(v)):
+            raise InputError(f"{where}'{key}' must be a finite number, got {v!r}.", jpath, "Fix the value.")
+
+
 def load_dnerf(path, fps: float = 0.0, scale: int = 1) -> Clip:
     """Read a D-NeRF/Blender-NeRF folder.
 
@@ -64,6 +72,10 @@ def load_dnerf(path, fps: float = 0.0, scale: int = 1) -> Clip:
             raise InputError("no 'frames' list.", jpath, "Use a D-NeRF/Blender-NeRF transforms file.")
         if "camera_angle_x" not in js and "fl_x" not in js:
             raise InputError("no 'camera_angle_x' (or 'fl_x').", jpath, "Add the camera field of view.")
+        _check_numbers(js, ("camera_angle_x", "fl_x", "fl_y", "cx", "cy"), jpath, "")
+        for key in ("w", "h"):
+            if key in js and (not isinstance(js[key], int) or isinstance(js[key], bool) or js[key] <= 0):
+                raise InputError(f"'{key}' must be a positive integer (pixels), got {js[key]!r}.", jpath, "Fix it.")
         split[name] = []
         for k, fr in enumerate(js["frames"]):
             try:
@@ -77,6 +89,9 @@ def load_dnerf(path, fps: float = 0.0, scale: int = 1) -> Clip:
             if M.shape != (4, 4):
                 raise InputError(f"frame {k} transform_matrix has shape {M.shape}; expected 4x4.", jpath,
                                  "Fix the frame entry.")
+            if not isinstance(fr, dict):
+                raise InputError(f"frame {k} is not an object.", jpath, "Fix the frame entry.")
+            _check_numbers(fr, ("time",), jpath, f"frame {k} ")
             img = _resolve(root, fp, jpath)
             if size is None:
                 size = image_size(img)

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..fsutil import atomic_write_json
-from .clip import Clip, FrameSource, finalize, load_json
+from .clip import IMAGE_EXTS, VIDEO_EXTS, Clip, FrameSource, finalize, load_json
 
 FORMAT = "motion-splats-clip"
 VERSION = 1
@@ -93,6 +93,31 @@ def validate_manifest(m, path) -> None:
     if m.get("priors") is not None and (not isinstance(m["priors"], dict) or
                                         not all(isinstance(v, str) for v in m["priors"].values())):
         bad("'priors' must map names to path strings.")
+    unknown = sorted(set(m.get("priors") or {}) - set(PRIOR_NAMES))
+    if unknown:
+        bad(f"'priors' has unknown name(s) {unknown}; known: {list(PRIOR_NAMES)}.")
+
+
+#: prior names a manifest may give (``priors``), as ``train``'s --depth-path/--mask-path/--tracks-path
+PRIOR_NAMES = ("depth", "mask", "tracks")
+PRIOR_EXTS = (".npy", ".npz", "")  # "" = a folder of PNGs
+
+
+def media_path(base: Path, rel: str, exts, what: str, manifest: Path) -> Path:
+    """``base / rel``, refused unless it stays inside the manifest's folder or is a file of
+    the expected kind (``exts``; ``None`` = inside only).
+
+    A manifest is data: it must not make the engine open arbitrary files on the machine
+    (``"frames": ["../../etc/passwd"]``). Footage kept elsewhere (a video on another disk)
+    is fine, as long as it is footage.
+    """
+    p = (base / rel).resolve()
+    inside = p == base.resolve() or base.resolve() in p.parents
+    if inside or (exts is not None and p.suffix.lower() in exts and p.suffix):
+        return p
+    kinds = "" if exts is None else f" or be a {'/'.join(e for e in exts if e)} file"
+    raise InputError(f"'{what}' path {rel!r} is outside the manifest's folder; it must stay inside{kinds}.",
+                     manifest, "Re-export the clip from Blender, or fix the path.")
 
 
 def is_manifest(path: Path) -> bool:
@@ -116,9 +141,17 @@ def load_manifest(path, scale: int = 1) -> Clip:
     validate_manifest(m, path)
     base = path.parent
     fs, fe = m["frame_start"], m["frame_end"]
+    if m["frames"] is None:  # bound the frame range by the video before building any per-frame list
+        from .video import video_info
+
+        vpath = media_path(base, m["video"], VIDEO_EXTS, "video", path)
+        n = video_info(vpath)[0]
+        if fe - fs + 1 > n:
+            raise InputError(f"'frame_end' - 'frame_start' + 1 = {fe - fs + 1} frames but the video has {n}.", path,
+                             "Fix frame_start/frame_end to the video's frame range.")
     blender_frames = list(range(fs, fe + 1))
     if m["frames"] is not None:
-        paths = [base / p for p in m["frames"]]
+        paths = [media_path(base, p, IMAGE_EXTS, "frame", path) for p in m["frames"]]
         missing = [p for p in paths if not p.is_file()]
         if missing:
             raise InputError(f"{len(missing)} frame image(s) are missing, e.g. {missing[0]}.", path,
@@ -126,13 +159,6 @@ def load_manifest(path, scale: int = 1) -> Clip:
         frames = FrameSource(paths=paths)
         frame_ids = [p.name for p in paths]
     else:
-        from .video import video_info
-
-        vpath = base / m["video"]
-        n = video_info(vpath)[0]
-        if fe - fs + 1 > n:
-            raise InputError(f"manifest asks for {fe - fs + 1} frames but the video has {n}.", path,
-                             "Fix frame_start/frame_end.")
         # the video's first frame is frame_start
         frames = FrameSource(video=vpath, indices=list(range(fe - fs + 1)))
         frame_ids = [str(f) for f in blender_frames]
@@ -152,13 +178,14 @@ def load_manifest(path, scale: int = 1) -> Clip:
     if m.get("masks_dir"):
         from .clip import list_images
 
-        md = base / m["masks_dir"]
+        md = media_path(base, m["masks_dir"], None, "masks_dir", path)
         if not md.is_dir():
             raise InputError("masks_dir does not exist.", md, "Re-export masks or remove masks_dir.")
         masks = list_images(md)
     clip = Clip(frames=frames, width=m["width"], height=m["height"], fps=float(m["fps"]), times=times,
                 frame_ids=frame_ids, K=K, w2c=w2c, dist=dist, source=path, masks=masks,
-                priors={k: base / v for k, v in (m.get("priors") or {}).items()}, downscale=int(scale),
+                priors={k: media_path(base, v, PRIOR_EXTS, f"priors.{k}", path) for k, v in
+                        (m.get("priors") or {}).items()}, downscale=int(scale),
                 meta={"frame_start": fs, "frame_end": fe})
     return finalize(clip)
 

@@ -45,6 +45,8 @@ def _arr(cam: dict, key: str, shape, path: Path, default=None) -> np.ndarray:
     if a is None or a.shape != tuple(shape):
         raise InputError(f"camera field '{key}' should have shape {tuple(shape)}.", path,
                          "Re-export the Nerfies camera file.")
+    if not np.isfinite(a).all():
+        raise InputError(f"camera field '{key}' has NaN or infinite values.", path, "Re-export the Nerfies camera file.")
     return a
 
 
@@ -102,6 +104,10 @@ def load_nerfies(path, scale: int = 1, fps: float = 0.0, apply_scene: bool = Tru
     ds = load_json(ds_path)
     if not isinstance(ds, dict) or "train_ids" not in ds:
         raise InputError("dataset.json has no 'train_ids'.", ds_path, "Use a Nerfies/HyperNeRF dataset.json.")
+    for key in ("train_ids", "val_ids", "ids"):
+        if key in ds and not (isinstance(ds[key], list) and all(isinstance(i, (str, int)) for i in ds[key])):
+            raise InputError(f"'{key}' must be a list of item ids, got {type(ds[key]).__name__}.", ds_path,
+                             "Fix dataset.json.")
     train_ids = [str(i) for i in ds["train_ids"]]
     val_ids = [str(i) for i in ds.get("val_ids", [])]
     ids = [str(i) for i in ds.get("ids", train_ids + val_ids)]
@@ -110,6 +116,9 @@ def load_nerfies(path, scale: int = 1, fps: float = 0.0, apply_scene: bool = Tru
             ids.append(i)
     meta_path = root / "metadata.json"
     meta = load_json(meta_path) if meta_path.is_file() else {}
+    if not isinstance(meta, dict) or not all(isinstance(v, dict) for v in meta.values()):
+        raise InputError("metadata.json must be an object mapping item ids to objects.", meta_path,
+                         "Fix metadata.json (Nerfies layout).")
     raw_t = []
     for i in ids:
         m = meta.get(i)
@@ -122,6 +131,8 @@ def load_nerfies(path, scale: int = 1, fps: float = 0.0, apply_scene: bool = Tru
             if key not in m:
                 raise InputError(f"item '{i}' has neither time_id nor warp_id.", meta_path,
                                  "Add time_id/warp_id to each item.")
+            if not isinstance(m[key], (int, float)) or isinstance(m[key], bool) or not np.isfinite(m[key]):
+                raise InputError(f"item '{i}' {key} must be a number, got {m[key]!r}.", meta_path, "Fix metadata.json.")
             raw_t.append(float(m[key]))
     order = np.argsort(np.asarray(raw_t), kind="stable")
     ids = [ids[k] for k in order]
@@ -155,6 +166,8 @@ def load_nerfies(path, scale: int = 1, fps: float = 0.0, apply_scene: bool = Tru
     scene_path = root / "scene.json"
     if scene_path.is_file():
         sc = load_json(scene_path)
+        if not isinstance(sc, dict):
+            raise InputError("scene.json must be a JSON object.", scene_path, "Fix scene.json.")
         try:
             c = np.asarray(sc.get("center", [0, 0, 0]), dtype=np.float64).reshape(3)
             s = float(sc.get("scale", 1.0))

@@ -14,6 +14,7 @@ the wrong type are refused with a message naming the key.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -128,16 +129,35 @@ class TrainConfig:
             bad("backend", "must be auto, reference, cpu or gsplat")
         if not 0 <= self.sh_degree <= 3:
             bad("sh_degree", "must be 0..3")
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                bad(f.name, f"must be a finite number, got {value!r}")
         for key in ("width", "steps", "num_nodes", "bind_k", "gaussians_per_frame", "init_keyframes",
-                    "max_gaussians", "batch_frames"):
+                    "max_gaussians", "batch_frames", "log_every", "densify_every"):
             if getattr(self, key) < 1:
                 bad(key, "must be >= 1")
+        for key in ("max_frames", "num_keys", "rebind_every", "checkpoint_every", "eval_every", "opacity_reset_every",
+                    "warmup_static_steps", "densify_from", "densify_until", "node_add_max"):
+            if getattr(self, key) < 0:
+                bad(key, "must be >= 0")
+        for key, limit in LIMITS.items():
+            if getattr(self, key) > limit:
+                bad(key, f"is {getattr(self, key)}, above the largest sensible value {limit}")
+        for key in [f.name for f in dataclasses.fields(self) if f.name.startswith("lr_")] + [
+                "densify_grad_threshold", "percent_dense", "opacity_prune", "node_spawn_factor",
+                "max_nodes_factor", "node_prune_weight"]:
+            if getattr(self, key) < 0:
+                bad(key, "must be >= 0")
         if not (0 <= self.canonical_time <= 1 or self.canonical_time == -1):
             bad("canonical_time", "must be in [0, 1] (fraction of the training frames) or -1 (source frames)")
         if self.bind_k > self.num_nodes:
             bad("bind_k", "cannot exceed num_nodes")
         for f in dataclasses.fields(self.loss):
-            if getattr(self.loss, f.name) < 0:
+            value = getattr(self.loss, f.name)
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+                bad(f"loss.{f.name}", f"must be a finite number, got {value!r}")
+            if value < 0:
                 bad(f"loss.{f.name}", "must be >= 0")
         return self
 
@@ -157,7 +177,12 @@ class TrainConfig:
                 kwargs["loss"] = _loss_from_dict(value, source)
                 continue
             default = getattr(cls(), key)
-            if isinstance(default, bool) or not isinstance(default, (int, float, str)):
+            if isinstance(default, bool):
+                if not isinstance(value, bool):
+                    raise InputError(f"config key {key!r} must be true or false, got {value!r}", source,
+                                     "fix the value's type")
+                kwargs[key] = value
+            elif not isinstance(default, (int, float, str)):
                 kwargs[key] = value
             elif isinstance(default, float) and isinstance(value, (int, float)) and not isinstance(value, bool):
                 kwargs[key] = float(value)
@@ -176,10 +201,17 @@ def _loss_from_dict(data: Any, source: str | None) -> LossWeights:
     for key, value in data.items():
         if key not in known:
             raise InputError(f"unknown loss weight {key!r}", source, f"valid: {sorted(known)}")
-        if not isinstance(value, (int, float)) or isinstance(value, bool):
-            raise InputError(f"loss weight {key!r} must be a number", source, "fix the value")
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+            raise InputError(f"loss weight {key!r} must be a finite number, got {value!r}", source, "fix the value")
     return LossWeights(**{k: float(v) for k, v in data.items()})
 
+
+#: Upper bounds: beyond them a run cannot finish on any machine this engine targets (a
+#: typo such as ``steps: 10**12`` or ``width: 100000`` is refused instead of accepted).
+LIMITS: dict[str, int] = {"width": 8192, "steps": 10_000_000, "num_nodes": 200_000, "num_keys": 10_000,
+                          "bind_k": 64, "gaussians_per_frame": 2_000_000, "init_keyframes": 1000,
+                          "max_gaussians": 20_000_000, "max_frames": 100_000, "batch_frames": 64,
+                          "node_add_max": 100_000}
 
 PRESETS: dict[str, dict[str, Any]] = {
     "preview": {},
@@ -193,15 +225,16 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-def preset_config(name: str, **overrides: Any) -> TrainConfig:
-    """The config of preset ``name`` with ``overrides`` applied (validated)."""
+def preset_config(name: str, source: str | None = None, **overrides: Any) -> TrainConfig:
+    """The config of preset ``name`` with ``overrides`` applied (validated; errors name ``source``,
+    e.g. the ``--config`` file the overrides came from)."""
     if name not in PRESETS:
         raise InputError(f"unknown preset {name!r}", None, f"choose one of {sorted(PRESETS)}")
     values = dict(PRESETS[name])
     values.update({k: v for k, v in overrides.items() if v is not None})
     values["preset"] = name
     loss = values.pop("loss", None)
-    cfg = TrainConfig.from_dict(values)
+    cfg = TrainConfig.from_dict(values, source)
     if loss is not None:
-        cfg.loss = loss if isinstance(loss, LossWeights) else _loss_from_dict(loss, None)
-    return cfg.validate()
+        cfg.loss = loss if isinstance(loss, LossWeights) else _loss_from_dict(loss, source)
+    return cfg.validate(source)
