@@ -13,6 +13,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_io_scene import Room, orbit_cameras  # noqa: E402
 
 from engine.errors import InputError  # noqa: E402
+from engine.io import solve_select as sel  # noqa: E402
 from engine.io import load_clip  # noqa: E402
 from engine.io.clip import Clip, FrameSource, times_from_count  # noqa: E402
 from engine.io.solve import default_K as solve_default_K  # noqa: E402
@@ -167,8 +168,9 @@ def test_parallax_clip_still_solves_with_fallback_enabled(tmp_path):
 @pytest.mark.needs_shared
 @pytest.mark.skipif(not SHARED.is_dir(), reason="shared sample clips not present")
 def test_real_clips_pan_solves_and_near_static_falls_back():
-    """bedroom.mp4 (handheld pan, two children): global SfM registers the frames with sub-pixel error;
-    cups.mp4 (near-static camera, hands): no SfM initialisation -> fixed-centre fallback with a warning."""
+    """bedroom.mp4 (handheld pan, two children): parallax grows with the frame gap, global SfM registers the
+    frames with sub-pixel error; cups.mp4 (near-static camera, hands): no parallax on the static matches ->
+    the fixed-centre model by evidence, announced in one warning line."""
     opts = dict(max_size=320, auto_masks=True, global_retry=True, static_fallback=True, num_threads=1)  # 1: reproducible
     rep = _Log()
     bed = solve_cameras(load_clip(SHARED / "bedroom.mp4", frame_step=3, max_frames=40), reporter=rep, **opts)
@@ -176,13 +178,18 @@ def test_real_clips_pan_solves_and_near_static_falls_back():
     assert info["model"] == "sfm" and info["num_registered"] >= 36, info  # measured 40/40, 0.54 px, 60 points
     assert info["mean_reproj_error"] < 1.0 and info["num_points"] >= 10
     assert not any(lvl == "warning" for lvl, _ in rep.messages)
+    chosen = [m for _, m in rep.messages if "chosen because" in m]
+    assert len(chosen) == 1 and chosen[0].startswith("camera solve: translating camera"), rep.messages
+    assert info["parallax_px"] >= sel.MIN_PARALLAX_PX and "reason" in info
     rep = _Log()
     cups = solve_cameras(load_clip(SHARED / "cups.mp4", frame_step=12, max_frames=25), reporter=rep, **opts)
     info = cups.meta["solve"]
     assert info["model"] in ("static", "rotation") and info["num_registered"] >= 20, info
     assert info["mean_reproj_error"] < 1.5  # transfer error of the fixed-centre model, full-res px
     assert np.isfinite(cups.w2c).all() and np.allclose(cups.camera_centers(), 0.0, atol=1e-9)
-    assert any(lvl == "warning" and "--fov" in m for lvl, m in rep.messages)
+    chosen = [(lvl, m) for lvl, m in rep.messages if "chosen because" in m]
+    assert len(chosen) == 1 and chosen[0][0] == "warning" and "--fov" in chosen[0][1], rep.messages
+    assert info["parallax_px"] < sel.MIN_PARALLAX_PX  # no parallax: chosen by evidence, SfM not run
 
 
 def test_textureless_clip_fails_clearly_even_with_fallback(tmp_path):
