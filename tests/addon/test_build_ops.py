@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 import bpy
+
+from tests.addon._support import fcurves_of
 from engine import bundle as bio
 from engine.commands._common import load_camera_path
 from engine.io.manifest import load_manifest
@@ -44,12 +46,12 @@ def test_import_operator_and_send_edits(registered, tmp_path):
     assert n1.pos_tangents_in is None and n1.bind_idx.shape == b.nodes.bind_idx.shape
 
     # move node 3's z key 2 (value and both handles) up by 0.5, and break node 5's x handle at key 1
-    fcs = empties[3].animation_data.action.layers[0].strips[0].channelbags[0].fcurves
+    fcs = fcurves_of(empties[3])
     kp = fcs.find("location", index=2).keyframe_points[2]
     for attr in ("co", "handle_left", "handle_right"):
         v = getattr(kp, attr)
         setattr(kp, attr, (v[0], v[1] + 0.5))
-    fcs5 = empties[5].animation_data.action.layers[0].strips[0].channelbags[0].fcurves
+    fcs5 = fcurves_of(empties[5])
     kp5 = fcs5.find("location", index=0).keyframe_points[1]
     kp5.handle_right = (kp5.handle_right[0], kp5.handle_right[1] + 0.2)
     assert bpy.ops.motion_splats.send_edits() == {"FINISHED"}
@@ -143,10 +145,10 @@ def test_result_panel_draws(registered, tmp_path):
     assert bpy.ops.motion_splats.set_preview.poll()
     bpy.context.scene.motion_splats_result.preview = "ELLIPSOIDS"
     e0 = bpy.data.objects["MS_node_00000"]
-    kp = e0.animation_data.action.layers[0].strips[0].channelbags[0].fcurves.find("location").keyframe_points[0]
+    kp = fcurves_of(e0).find("location").keyframe_points[0]
     kp.co.y += 1.0  # an unsent edit survives the rebuild
     assert bpy.ops.motion_splats.set_preview() == {"FINISHED"}
-    kp = e0.animation_data.action.layers[0].strips[0].channelbags[0].fcurves.find("location").keyframe_points[0]
+    kp = fcurves_of(e0).find("location").keyframe_points[0]
     want = bio.read_nodes(tmp_path / "b" / bio.NODES_FILE).pos_keys[0, 0, 0] + 1.0
     assert kp.co.y == pytest.approx(want, abs=1e-5)
     meshes = [o for o in bpy.data.objects if o.type == "MESH"]

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.addon._support import REPO, VENV_PYTHON, bpy, clean_jobs, registered, user_dir  # noqa: F401
+from tests.addon._support import fcurves_of, REPO, VENV_PYTHON, bpy, clean_jobs, registered, user_dir  # noqa: F401
 
 pytestmark = pytest.mark.skipif(not VENV_PYTHON.exists(), reason="needs the engine venv")
 
@@ -57,7 +57,7 @@ def test_finetune_operator_real_engine(extension, registered, tmp_path, trained_
     empties = build.node_empties(col)
 
     # the artist's edit: node 0's z key 1 (value and both handles) up by 0.1
-    fcs = empties[0].animation_data.action.layers[0].strips[0].channelbags[0].fcurves
+    fcs = fcurves_of(empties[0])
     kp = fcs.find("location", index=2).keyframe_points[1]
     for attr in ("co", "handle_left", "handle_right"):
         v = getattr(kp, attr)
@@ -95,7 +95,7 @@ def test_finetune_operator_real_engine(extension, registered, tmp_path, trained_
     # the preview was rebuilt from the new appearance; the edited Empties are the same objects
     col = build.bundle_collection(bpy.context)
     assert build.node_empties(col) == empties
-    kp = empties[0].animation_data.action.layers[0].strips[0].channelbags[0].fcurves.find(
+    kp = fcurves_of(empties[0]).find(
         "location", index=2).keyframe_points[1]
     assert kp.co[1] == pytest.approx(edited_z)
     mesh = next(o for o in col.objects if "ms_gaussians" in o)

@@ -197,7 +197,8 @@ s = bpy.context.scene
 s.render.resolution_x, s.render.resolution_y, s.render.resolution_percentage = 32, 24, 100
 s.frame_start, s.frame_end = 1, 4
 s.render.fps, s.render.fps_base = 30, 1.001
-s.render.image_settings.media_type = "VIDEO"
+if hasattr(s.render.image_settings, "media_type"):  # Blender 5: still image vs video first
+    s.render.image_settings.media_type = "VIDEO"
 s.render.image_settings.file_format = "FFMPEG"
 s.render.ffmpeg.format, s.render.ffmpeg.codec = "MPEG4", "H264"
 s.render.engine = "BLENDER_WORKBENCH"

@@ -63,7 +63,7 @@ def test_prefs_draw_does_not_fail(extension, registered):
     cls = extension.addon.preferences.MotionSplatsPreferences
     holder = type("Holder", (), {})()
     holder.layout = Stub()
-    for name in ("engine_python", "base_python", "cache_dir"):
+    for name in ("engine_python", "base_python", "cache_dir", "results_dir"):
         setattr(holder, name, getattr(registered, name))
     cls.draw(holder, bpy.context)
 

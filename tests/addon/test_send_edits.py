@@ -10,7 +10,7 @@ import pytest
 import bpy
 from engine import bundle as bio
 
-from tests.addon._support import REPO
+from tests.addon._support import fcurves_of, REPO
 from tests.addon.test_build_bundle import make_bundle
 
 
@@ -24,7 +24,7 @@ def registered(extension, empty_scene):
 
 
 def _curves(empty):
-    return empty.animation_data.action.layers[0].strips[0].channelbags[0].fcurves
+    return fcurves_of(empty)
 
 
 def test_send_edits_touches_only_edited_nodes(registered, tmp_path):
