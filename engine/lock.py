@@ -5,6 +5,8 @@ report success. :func:`hold` creates ``<out>/.motion-splats.lock`` with ``O_EXCL
 on every local file system) holding the owner's pid and host; a second writer is refused
 in one line. A lock left by a process that no longer exists (SIGKILL, power loss) on the
 same host is stale and taken over. The lock is removed on exit, error or interruption.
+Taking the lock also removes temporaries a killed writer left behind
+(:func:`engine.fsutil.clean_stale_temps`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from pathlib import Path
 from typing import Iterator
 
 from .errors import InputError
+from .fsutil import clean_stale_temps
 
 LOCK_NAME = ".motion-splats.lock"
 
@@ -69,6 +72,7 @@ def acquire(folder: str | os.PathLike) -> Path:
                              "wait for it to finish or cancel it, or choose another --out") from None
         with os.fdopen(fd, "wb") as fh:
             fh.write(me)
+        clean_stale_temps(folder)  # ours now: any half-written temporary is from a killed run
         return path
     raise InputError("cannot take the output folder's lock", path, "remove the lock file if no engine is running")
 
