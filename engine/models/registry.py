@@ -9,7 +9,8 @@ licence (``non_commercial`` flags licences artists cannot use for paid work), th
 input contract, an optional sidecar JSON written next to the model (see
 ``engine/priors/onnx_util.py``), and the citation. A ``shipped`` path (relative to the
 ``engine`` package) marks a model that ships inside the product: fetching it copies the
-shipped file, no network.
+shipped file, no network. Files named in ``$MOTION_SPLATS_REGISTRY`` (same format,
+``os.pathsep``-separated) add your own models after the built-in ones.
 
 Standard library only, so the Blender add-on can import it.
 """

@@ -229,3 +229,24 @@ def test_move_into_place_failure_is_one_line_and_leaves_no_part(server, tmp_path
     with pytest.raises(DownloadError, match="cannot move tiny-depth into place"):
         fetch(spec, store)
     assert not store.part_path(spec).exists() and store.read_record(spec) is None
+
+
+def test_registry_is_well_formed():
+    specs = load_registry()
+    assert {s.role for s in specs} == {"flow", "tokens", "depth", "mask", "tracks"}
+    for s in specs:
+        assert all(u.startswith("https://") for u in s.urls), s.name
+        assert s.fetchable or s.note or s.shipped, f"{s.name}: say how to get it"
+        assert s.license
+    nc = {s.name for s in specs if s.non_commercial}
+    assert nc == {"cotracker3"} and all("NC" in s.license for s in specs if s.name in nc)
+    assert next(s for s in specs if s.name == "raft-small").shipped
+
+
+def test_shipped_raft_small_matches_the_registry(tmp_path):
+    """`models fetch raft-small` copies the shipped file (no network) and its hash is the registry's."""
+    spec = next(s for s in load_registry() if s.name == "raft-small")
+    if spec.shipped_path is None:
+        pytest.skip("RAFT-small is not shipped in this checkout")
+    info = fetch(spec, ModelStore(tmp_path))
+    assert info["sha256"] == spec.sha256 and info["source"] == str(spec.shipped_path)
