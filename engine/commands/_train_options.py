@@ -98,7 +98,7 @@ def prior_config_from_args(args):
         return cfg
     from ..models import resolve_prior_models  # backend auto: installed models fill the open roles
 
-    return resolve_prior_models(cfg)
+    return resolve_prior_models(cfg, explicit={"flow"} if getattr(args, "flow_backend", None) else ())
 
 
 def clip_options(args) -> dict:

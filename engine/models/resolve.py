@@ -63,19 +63,20 @@ def installed_for_role(role: str, store: ModelStore | None = None, registry=None
     return None
 
 
-def resolve_prior_models(cfg, store: ModelStore | None = None, registry=None, reporter=None):
+def resolve_prior_models(cfg, store: ModelStore | None = None, registry=None, reporter=None, explicit=()):
     """Return a copy of the PriorConfig ``cfg`` with every open role using its installed model.
 
     A role with an installed model (cache) switches to backend ``"onnx"`` with that file;
     a role whose backend is ``"auto"`` and that has none installed takes the model shipped
     in the product (RAFT-small for flow) when there is one; other roles keep their
-    weight-free backend. Nothing is downloaded.
+    weight-free backend. Roles in ``explicit`` (the user named their backend, e.g.
+    ``--flow-backend dis``) are left alone. Nothing is downloaded.
     """
     store = store or ModelStore()
     registry = registry if registry is not None else load_registry()
     changes = {}
     for role, (backend, model, _path) in ROLE_FIELDS.items():
-        if not role_is_open(cfg, role):
+        if role in explicit or not role_is_open(cfg, role):
             continue
         found = installed_for_role(role, store, registry)
         if found is None and getattr(cfg, backend) == "auto":

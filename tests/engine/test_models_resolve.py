@@ -115,7 +115,7 @@ def test_auto_flow_takes_cached_then_shipped_model(tmp_path, monkeypatch):
 
 def _args(**kw):
     base = dict(tokens_model=None, depth_model=None, mask_model=None, tracks_model=None, depth_path=None,
-                mask_path=None, tracks_path=None, no_models=False)
+                mask_path=None, tracks_path=None, no_models=False, flow_backend=None, flow_model=None)
     return argparse.Namespace(**{**base, **kw})
 
 
@@ -174,3 +174,21 @@ def test_fetch_then_init_uses_the_model_and_scene_json_says_so(tmp_path):
     assert scene["priors"]["depth"]["model"] == "tiny-depth" and scene["priors"]["depth"]["sha256"] == sha
     assert scene["priors"]["tokens"] == {"backend": "handcrafted"}
     assert scene["config"]["motion_init"] == "tracks"  # a model depth: tracks are lifted
+
+
+def test_explicit_flow_backend_beats_an_installed_flow_model(tmp_path, monkeypatch):
+    """--flow-backend dis is the default value but a user choice: an installed RAFT must not replace it."""
+    from engine.commands._train_options import prior_config_from_args
+
+    data = tiny_onnx_bytes(seed=7)
+    reg = tmp_path / "reg.json"
+    reg.write_text(json.dumps({"models": [{"name": "tiny-flow", "role": "flow", "title": "t", "file": "f.onnx",
+                                           "license": "MIT", "sha256": hashlib.sha256(data).hexdigest()}]}))
+    monkeypatch.setenv("MOTION_SPLATS_REGISTRY", str(reg))
+    monkeypatch.setenv("MOTION_SPLATS_MODELS", str(tmp_path / "models"))
+    spec = ModelSpec(name="tiny-flow", role="flow", title="t", file="f.onnx", license="MIT",
+                     sha256=hashlib.sha256(data).hexdigest())
+    _install(ModelStore(), spec, data)
+    assert prior_config_from_args(_args()).flow_model == str(ModelStore().model_path(spec))
+    cfg = prior_config_from_args(_args(flow_backend="dis"))
+    assert cfg.flow_backend == "dis" and cfg.flow_model is None
