@@ -192,3 +192,17 @@ def test_explicit_flow_backend_beats_an_installed_flow_model(tmp_path, monkeypat
     assert prior_config_from_args(_args()).flow_model == str(ModelStore().model_path(spec))
     cfg = prior_config_from_args(_args(flow_backend="dis"))
     assert cfg.flow_backend == "dis" and cfg.flow_model is None
+
+
+def test_unresolved_auto_flow_is_recorded_as_what_runs(tmp_path):
+    """A config whose flow backend is still 'auto' (library use, no resolve) records the model the
+    priors will actually run: the shipped RAFT-small by name and hash, else DIS."""
+    from engine.models import load_registry
+    from engine.priors.flow import shipped_flow_model
+
+    desc = describe_priors(PriorConfig(flow_backend="auto"), ModelStore(tmp_path), load_registry())["flow"]
+    if shipped_flow_model() is None:
+        assert desc == {"backend": "dis"}
+    else:
+        raft = next(s for s in load_registry() if s.name == "raft-small")
+        assert desc["backend"] == "onnx" and desc["model"] == "raft-small" and desc["sha256"] == raft.sha256
