@@ -52,6 +52,8 @@ class MOTIONSPLATS_PG_result(bpy.types.PropertyGroup):
     last_clip: StringProperty(name="Last Clip", subtype="FILE_PATH", options={"HIDDEN"},
                               description="Clip the last reconstruction trained on (for Resume)")
     last_preset: StringProperty(name="Last Preset", options={"HIDDEN"})
+    last_steps: IntProperty(name="Last Steps", default=0, min=0, options={"HIDDEN"},
+                            description="Steps of the last reconstruction (Resume continues that very run)")
     # -- fine-tuning (operators/finetune_ops.py) --
     finetune_steps: IntProperty(name="Fine-tune Steps", default=200, min=1, soft_max=5000,
                                 description="Optimisation steps of Fine-tune Appearance")

@@ -237,9 +237,12 @@ def start_training(op, context, *, resume: bool):
         if not clip or not Path(clip).exists():
             op.report({"ERROR"}, f"The clip of the last run is missing: {clip or '(none)'}")
             return {"CANCELLED"}
+        # the engine resumes only the run it checkpointed: its preset and step count, whatever
+        # the panel says now
         preset = settings.last_preset or settings.preset
+        steps = settings.last_steps
     else:
-        preset = settings.preset
+        preset, steps = settings.preset, settings.steps
         try:
             found = _export_footage(op, context, settings)
         except OSError as exc:
@@ -250,7 +253,7 @@ def start_training(op, context, *, resume: bool):
             return {"CANCELLED"}
         clip, bundle, note = found
         bundle = str(bundle)
-    args = train_args(clip, bundle, preset, resume=resume, steps=settings.steps,
+    args = train_args(clip, bundle, preset, resume=resume, steps=steps,
                       device=preferences.device(context), models=preferences.onnx_models(context))
     process = EngineProcess.for_engine(python, "train", args, env=preferences.engine_env(context))
     label = "Resume" if resume else "Reconstruct"
@@ -260,6 +263,7 @@ def start_training(op, context, *, resume: bool):
     settings.bundle_path = bundle
     settings.last_clip = clip
     settings.last_preset = preset
+    settings.last_steps = steps
     if job.state == "failed":
         op.report({"ERROR"}, " ".join(job.error_summary()))
         return {"CANCELLED"}
