@@ -168,7 +168,17 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     f, h, w = frames.shape[:3]
     depth = np.zeros((f, h, w), np.float32)
     dynamic = np.zeros((f, h, w), np.float32)
-    depth[order] = pr.depth
+    d_source = depth_source(prior_config or PriorConfig())
+    train_depth = pr.depth
+    if d_source == "weight-free":
+        # the weight-free depth of a moving object is its surroundings' and changes as the
+        # object crosses them: give each moving track one depth (engine/priors/dynamic_depth.py)
+        from .priors.dynamic_depth import track_consistent_depth
+
+        train_depth, st = track_consistent_depth(pr.depth, pr.dynamic, pr.tracks.xy, pr.tracks.visible)
+        reporter.log(f"moving objects: one depth per moving track ({st['moving_tracks']} tracks, "
+                     f"{st['painted_px']} pixels in {st['frames']} frames)")
+    depth[order] = train_depth
     dynamic[order] = pr.dynamic
     xy = np.zeros((pr.tracks.xy.shape[0], f, 2), np.float32)
     vis = np.zeros((pr.tracks.xy.shape[0], f), bool)
@@ -177,7 +187,7 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     full = dataclasses.replace(pr.tracks, xy=xy, visible=vis) if dataclasses.is_dataclass(pr.tracks) else pr.tracks
     priors = _FramePriors(tokens=pr.tokens, tracks=full, depth=depth, dynamic=dynamic, train_order=order,
                           recomputed=list(getattr(pr, "recomputed", [])),
-                          depth_source=depth_source(prior_config or PriorConfig()),
+                          depth_source=d_source,
                           sources=_prior_sources(prior_config or PriorConfig()))
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
                         frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
@@ -242,19 +252,18 @@ def depth_source(prior_config) -> str:
 
 def resolve_motion_init(prep: "PreparedClip", cfg: TrainConfig) -> str:
     """``cfg.motion_init`` with ``"auto"`` decided: ``"tracks"`` (node splines fitted to 2D
-    tracks lifted with the depth prior) unless the depth is the weight-free one, then
-    ``"rest"`` (every node starts still and the track loss teaches the motion).
+    tracks lifted with the depth prior, the paper's initialisation).
 
-    Why: the weight-free depth of a moving object is filled in from the static surfaces
-    around it, so a lifted track's depth -- and with it the node's starting 3D motion --
-    is made up. On the generated bench scenes (weight-free priors, see
-    docs/benchmarks.md) starting at rest was better for every initialiser, most on a
-    waving flag next to a wall; with depth that sees the moving objects (ground truth)
-    the track-fitted start is better.
+    With the weight-free depth the tracks are lifted at one depth per moving track
+    (:func:`engine.priors.dynamic_depth.track_consistent_depth`, applied in :func:`prepare`):
+    the per-frame weight-free depth of a moving object is its surroundings' and made the
+    lifted motion up (which is why ``auto`` used to mean ``rest`` there), but a node that
+    starts at rest on an object crossing the frame never finds it again -- the object went
+    missing from the reconstruction (docs/benchmarks.md, "Moving objects").
     """
     if cfg.motion_init != "auto":
         return cfg.motion_init
-    return "rest" if prep.priors.depth_source == "weight-free" else "tracks"
+    return "tracks"
 
 
 def initial_nodes(prep: PreparedClip, cfg: TrainConfig) -> B.NodeArrays:

@@ -33,7 +33,9 @@ class LossWeights:
     ssim: float = 0.2         # D-SSIM share inside the photometric term (3DGS uses 0.2)
     mask: float = 0.1         # rendered alpha vs the foreground/dynamic prior on dynamic pixels
     depth: float = 0.05       # scale/shift-invariant depth vs the depth prior
-    track: float = 0.05       # projected deformed node/Gaussian positions vs 2D tracks (pixels / image size)
+    track: float = 0.05       # projected deformed track points vs 2D tracks (Huber, in % of the image width)
+    rgb_dynamic: float = 2.0  # extra L1 weight on pixels the dynamic prior calls moving (1 + this there):
+                              # moving objects cover a few % of the image and would get that share of the loss
     arap: float = 1.0         # as-rigid-as-possible on the node graph
     velocity: float = 1e-3    # mild spline velocity regulariser
     acceleration: float = 1e-2  # mild spline acceleration regulariser
@@ -62,6 +64,11 @@ class TrainConfig:
                                          # prior) | rest (every node still; the track loss teaches the motion) |
                                          # auto (tracks when the depth prior comes from a model or a file, rest
                                          # with the weight-free depth, which cannot see moving objects)
+    split: bool = True                   # static / dynamic split (engine/train/split.py): static nodes rest and
+                                         # carry undeformed static Gaussians; dynamic Gaussians bind to dynamic
+                                         # nodes only and are seeded from the moving pixels of every frame
+    dynamic_threshold: float = 0.5       # dynamic prior at or above this = moving (nodes, Gaussians, tracks)
+    dynamic_gaussians: int = 6000        # Gaussians seeded on moving pixels, spread over all training frames
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     bind_k: int = 4                      # nodes per Gaussian (K in the paper)

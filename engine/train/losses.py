@@ -103,9 +103,12 @@ def ssim_torch(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma
     return (num / den).mean()
 
 
-def photometric(pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
-    """3DGS photometric loss ``(1 - λ) L1 + λ (1 - SSIM)``; images ``[H, W, 3]``."""
-    loss = (1.0 - ssim_weight) * l1(pred, target)
+def photometric(pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2,
+                weight: torch.Tensor | None = None) -> torch.Tensor:
+    """3DGS photometric loss ``(1 - λ) L1 + λ (1 - SSIM)``; images ``[H, W, 3]``.
+
+    ``weight [H, W, 1]`` (optional) makes the L1 term a weighted mean over pixels."""
+    loss = (1.0 - ssim_weight) * l1(pred, target, weight)
     if ssim_weight > 0:
         loss = loss + ssim_weight * (1.0 - ssim(pred, target))
     return loss

@@ -128,7 +128,9 @@ class DynamicScene(nn.Module):
     Buffers
     -------
     node_centers [N, 3] canonical node centres ``c_i``; key_times [K];
-    bind_idx [G, K_b], bind_w [G, K_b]; graph_idx [N, k]; node_p_dyn [N]; node_fg [N].
+    bind_idx [G, K_b], bind_w [G, K_b]; graph_idx [N, k]; node_p_dyn [N]; node_fg [N];
+    node_dyn [N] bool, gauss_dyn [G] bool: the static / dynamic split
+    (``engine/train/split.py``; all True = one class, the model before the split).
     """
 
     def __init__(self, means, colors, scales, opacities, node_centers, node_radii, key_times, pos_keys,
@@ -174,6 +176,8 @@ class DynamicScene(nn.Module):
                 rot_keys = torch.zeros(n, k, 4, device=dev, dtype=dt)
                 rot_keys[..., 0] = 1
             self.rot_keys = nn.Parameter(rot_keys.clone())
+        self.register_buffer("node_dyn", torch.ones(n, dtype=torch.bool, device=dev))
+        self.register_buffer("gauss_dyn", torch.ones(g, dtype=torch.bool, device=dev))
         self.register_buffer("bind_idx", torch.zeros(g, self.bind_k, dtype=torch.long, device=dev))
         self.register_buffer("bind_w", torch.zeros(g, self.bind_k, device=dev, dtype=dt))
         self.rebind()
@@ -202,10 +206,33 @@ class DynamicScene(nn.Module):
         return torch.exp(self.node_log_radii)
 
     # ------------------------------------------------------------------ motion
+    @property
+    def is_split(self) -> bool:
+        """Whether the model has static nodes (``engine/train/split.py``)."""
+        return not bool(self.node_dyn.all())
+
+    @torch.no_grad()
+    def bind_points(self, points: torch.Tensor, point_dyn: torch.Tensor | None = None):
+        """K nearest nodes and RBF weights ``([P, K_b], [P, K_b])`` of canonical ``points
+        [P, 3]``; with the split, among the nodes of each point's class (``point_dyn [P]``,
+        default dynamic)."""
+        radii = self.node_radii().detach()
+        if not self.is_split:
+            return bind_gaussians(points, self.node_centers, radii, self.bind_k)
+        from .split import bind_within_class
+
+        if point_dyn is None:
+            point_dyn = torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
+        return bind_within_class(points, point_dyn, self.node_centers, self.node_dyn, radii, self.bind_k)
+
     @torch.no_grad()
     def rebind(self) -> None:
         """Refresh each Gaussian's K nearest nodes and RBF weights (canonical space)."""
         points, nodes, radii = self.means.detach(), self.node_centers, self.node_radii().detach()
+        if self.is_split:
+            idx, w = self.bind_points(points, self.gauss_dyn)
+            self.bind_idx, self.bind_w = idx, w.to(self.means.dtype)
+            return
         if FUSED_DEFORM and fused_available(points, nodes) and nodes.shape[0] >= self.bind_k:
             # the K-NN ranking and RBF weights of bind_gaussians without its [G, N] score
             # matrix and top-k (~3x less CPU at 30k Gaussians x 1k nodes)

@@ -32,6 +32,7 @@ from .fused_reg import fused_arap, fused_key_terms, fused_reg_available
 from .model import DynamicScene
 from .phases import no_phase
 from .render import render_scene, scene_colors
+from .split import freeze_static_nodes, graph_within_class
 
 GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -40,199 +41,8 @@ CHECKPOINT_NAME = "checkpoint.pt"
 FUSED_REG = True
 
 
-# ----------------------------------------------------------------------------------
-# Initialisation
-# ----------------------------------------------------------------------------------
-def to_canonical(model_like, points: torch.Tensor, t: float, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Invert the node deformation at time ``t`` for world points observed at ``t``.
-
-    Binds ``points [P, 3]`` to the nodes' positions *at time t*, blends the node
-    transforms and applies the inverse rigid transform. Returns canonical points
-    ``[P, 3]`` and their binding ``(idx, w)``. Exact when the bound nodes move rigidly
-    together; a good initial guess otherwise.
-    """
-    with torch.no_grad():
-        pos, rot = model_like.node_state(t)
-        radii = model_like.node_radii()
-        idx, w = bind_gaussians(points, pos, radii, k)
-        dq = dq_blend(node_transforms_dq(model_like.node_centers, pos, rot), idx, w)
-        qr, qd = dq[:, :4], dq[:, 4:]
-        # inverse of a unit dual quaternion is its quaternion conjugate (both parts)
-        inv = torch.cat([quat_conj(qr), quat_conj(qd)], dim=-1)
-        canon = dq_apply_points(inv, points)
-        idx_c, w_c = bind_gaussians(canon, model_like.node_centers, radii, k)
-    return canon, idx_c, w_c
-
-
-class _NodeMotion(torch.nn.Module):
-    """Node-only view of the motion, used before the Gaussians exist."""
-
-    def __init__(self, model: DynamicScene):
-        super().__init__()
-        self.m = model
-
-    def node_state(self, t):
-        return self.m.node_state(t)
-
-    def node_radii(self):
-        return self.m.node_radii()
-
-    @property
-    def node_centers(self):
-        return self.m.node_centers
-
-
-def initial_gaussians(data: TrainingData, cfg: TrainConfig, gen: torch.Generator):
-    """Back-project pixels of ``cfg.init_keyframes`` training frames (depth + colour).
-
-    Returns world positions ``[G, 3]``, colours ``[G, 3]``, isotropic scales ``[G, 3]``,
-    and the engine time each point was observed at ``[G]``.
-    """
-    if data.depth is None:
-        raise InputError("training needs a depth prior to place the initial Gaussians", None,
-                         "compute priors first (python -m engine prepare) or supply precomputed depth")
-    train = data.train_idx
-    n_key = min(cfg.init_keyframes, len(train))
-    pick = train[torch.linspace(0, len(train) - 1, n_key).round().long()]
-    h, w = data.height, data.width
-    per = cfg.gaussians_per_frame
-    pts, cols, scl, tms = [], [], [], []
-    for f in pick.tolist():  # a handful of keyframes; per-pixel work is vectorised
-        d = data.depth[f]
-        flat = torch.randint(0, h * w, (per,), generator=gen, device="cpu").to(d.device)
-        py, px = flat // w, flat % w
-        z = d[py, px]
-        ok = z > 0
-        py, px, z = py[ok], px[ok], z[ok]
-        uv = torch.stack([px.to(z.dtype) + 0.5, py.to(z.dtype) + 0.5], -1)
-        x = unproject(data.K[f], data.w2c[f], uv, z)
-        # footprint of ~sqrt(HW / per) pixels at depth z
-        footprint = math.sqrt(h * w / per) * z / data.K[f, 0, 0]
-        pts.append(x)
-        cols.append(data.images[f, py, px])
-        scl.append((0.5 * footprint).unsqueeze(-1).expand(-1, 3))
-        tms.append(torch.full_like(z, float(data.times[f])))
-    return torch.cat(pts), torch.cat(cols), torch.cat(scl), torch.cat(tms)
-
-
-def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: torch.Generator) -> DynamicScene:
-    """Create the model: nodes from ``nodes``, Gaussians back-projected into canonical space."""
-    dev, dt = data.images.device, torch.float32
-    as_t = lambda a: torch.as_tensor(np.asarray(a), device=dev, dtype=dt)  # noqa: E731
-    key_times, pos_keys, rot_keys = as_t(nodes.key_times), as_t(nodes.pos_keys), as_t(nodes.rot_keys)
-    graph = torch.as_tensor(nodes.graph_idx, device=dev) if nodes.graph_idx is not None else None
-    centers, radii = as_t(nodes.centers), as_t(nodes.radii)
-    if cfg.motion != "mlp" and cfg.canonical_time >= 0:
-        centers, radii, graph = common_canonical_nodes(data, key_times, pos_keys, as_t(nodes.pos_tangents),
-                                                       cfg.canonical_time, graph)
-    if cfg.motion == "per_frame":
-        # one key per training frame, initialised by sampling the initial spline there
-        from ..geometry.hermite import hermite_eval, hermite_eval_quat
-
-        ft = torch.unique(data.times[data.train_idx]).to(dt)
-        pos_keys = hermite_eval(key_times, pos_keys, as_t(nodes.pos_tangents), ft)
-        rot_keys = hermite_eval_quat(key_times, rot_keys, as_t(nodes.rot_tangents), ft)
-        key_times = ft
-    p_dyn = as_t(nodes.p_dyn) if nodes.p_dyn is not None else None
-    # Nodes alone first (one dummy Gaussian) to map observed points to canonical space.
-    probe = DynamicScene(centers[:1].clone(), torch.zeros(1, 3, device=dev), torch.ones(1, 3, device=dev),
-                         torch.full((1,), 0.5, device=dev), centers, radii, key_times, pos_keys,
-                         rot_keys, sh_degree=cfg.sh_degree, motion="spline", bind_k=cfg.bind_k,
-                         graph_idx=graph, node_p_dyn=p_dyn, extent=data.extent)
-    pts, cols, scl, tms = initial_gaussians(data, cfg, gen)
-    canon = torch.empty_like(pts)
-    for t in torch.unique(tms).tolist():  # one inversion per keyframe time
-        sel = tms == t
-        if cfg.motion == "mlp":
-            canon[sel] = pts[sel]  # the MLP starts at identity motion
-        else:
-            canon[sel] = to_canonical(_NodeMotion(probe), pts[sel], t, cfg.bind_k)[0]
-    model = DynamicScene(canon, cols.clamp(0, 1), scl, torch.full((len(canon),), 0.3, device=dev), centers,
-                         radii, key_times, pos_keys, rot_keys, sh_degree=cfg.sh_degree,
-                         motion=cfg.motion, bind_k=cfg.bind_k, graph_idx=graph, node_p_dyn=p_dyn,
-                         extent=data.extent)
-    return model
-
-
-def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys: torch.Tensor,
-                           pos_tangents: torch.Tensor, t_rel: float, graph: torch.Tensor | None):
-    """Canonical node centres at one shared time: each node's initial position there.
-
-    An initialiser places every node where it was seen, at its own source frame; nodes on a
-    moving part seen at different keyframes then sit where the part was at *different*
-    times. Used as canonical centres, that mixes times: a Gaussian's canonical position
-    blends frames its nodes disagree on, and the canonical K-NN binding (and every rebind)
-    can then pick nodes of another part, or static ones, that happen to lie near that
-    blend — on a part moving more than its width between keyframes (a forearm) its
-    Gaussians lag. Taking every centre at one time ``t_c`` (the training frame nearest
-    ``t_rel`` of the way through the training frames) makes canonical space the scene at
-    ``t_c``. With identity rotations (every initialiser) the node transforms at any ``t``
-    are unchanged in meaning (translation ``pos(t) - c``), radii and the ARAP graph are
-    recomputed from the new centres (at ``t_c`` neighbours are true neighbours).
-
-    key_times [K], pos_keys / pos_tangents [N, K, 3] -> centres [N, 3], radii [N],
-    graph [N, k] (``None`` in, ``None`` out).
-    """
-    from ..geometry.hermite import hermite_eval
-    from ..nodes import NodeInitConfig
-    from ..nodes.graph import node_graph, node_radii
-
-    times = torch.sort(data.times[data.train_idx].to(pos_keys.dtype)).values
-    t_c = times[int(round(t_rel * (len(times) - 1)))].reshape(1)
-    centers = hermite_eval(key_times, pos_keys, pos_tangents, t_c)[:, 0]
-    ncfg = NodeInitConfig()
-    radii = node_radii(centers, ncfg.radius_k, ncfg.radius_factor)
-    if graph is not None:
-        graph = node_graph(centers, graph.shape[1])[0]
-    return centers, radii, graph
-
-
-@torch.no_grad()
-def node_fg_score(data: TrainingData, nodes: B.NodeArrays, occlusion_tol: float = 0.2) -> torch.Tensor | None:
-    """Per-node dynamic score [N] in [0, 1] from the foreground/dynamic prior, the same for
-    every initialiser and motion model.
-
-    Each node follows its *initial* trajectory (the spline the initialiser fitted to the
-    tracks) through the training frames; the score is :func:`trajectory_fg_score` of it.
-    Nodes never in view get the initialiser's ``p_dyn``. None without a prior.
-    """
-    from ..geometry.hermite import hermite_eval
-
-    if data.fg is None:
-        return None
-    dev, dt = data.images.device, torch.float32
-    as_t = lambda a: torch.as_tensor(np.asarray(a), device=dev, dtype=dt)  # noqa: E731
-    times = data.times[data.train_idx].to(dt)
-    pos = hermite_eval(as_t(nodes.key_times), as_t(nodes.pos_keys), as_t(nodes.pos_tangents), times)  # [N, T, 3]
-    fallback = as_t(nodes.p_dyn) if nodes.p_dyn is not None else torch.zeros(pos.shape[0], device=dev)
-    return trajectory_fg_score(data, pos, fallback, occlusion_tol)
-
-
-def trajectory_fg_score(data: TrainingData, pos: torch.Tensor, fallback: torch.Tensor,
-                        occlusion_tol: float = 0.2) -> torch.Tensor:
-    """Mean dynamic prior along trajectories ``pos [N, T, 3]`` (world positions at the
-    training frames ``data.train_idx``, in that order) -> [N] in [0, 1].
-
-    The prior is read at each position's projection over the frames where it is in view
-    and not behind the prior's depth (``occlusion_tol`` relative; merged nodes may sit a
-    little inside an object), so a static point that a moving object passes in front of
-    stays static. Points never in view get ``fallback [N]``. Requires ``data.fg``.
-    """
-    h, w = data.height, data.width
-    dev = pos.device
-    idx = data.train_idx.to(dev)
-    # every (point, frame) pair at once: the cameras broadcast over the points
-    uv, z = project(data.K[idx][None], data.w2c[idx][None], pos)  # [N, T, 2], [N, T]
-    px, py = uv[..., 0].floor().long(), uv[..., 1].floor().long()
-    ok = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
-    px, py = px.clamp(0, w - 1), py.clamp(0, h - 1)
-    ff = idx[None].expand_as(px)
-    if data.depth is not None:
-        dz = data.depth[ff, py, px]
-        ok &= (dz <= 0) | (z <= dz * (1 + occlusion_tol))
-    acc = torch.where(ok, data.fg[ff, py, px], 0.0).sum(1)
-    cnt = ok.sum(1).to(acc.dtype)
-    return torch.where(cnt > 0, acc / cnt.clamp_min(1), fallback.to(dev)).clamp(0, 1)
+from .init_model import (build_model, common_canonical_nodes, initial_gaussians,  # noqa: F401
+                         node_fg_score, to_canonical, trajectory_fg_score)
 
 
 # ----------------------------------------------------------------------------------
@@ -349,10 +159,7 @@ class Trainer:
             if resume:
                 B.refuse_finished_resume(self.out_dir)
                 self.reporter.log(f"no checkpoint at {self.ckpt_path}; starting a new run", "warning")
-            self.model = build_model(self.data, nodes, self.cfg, self.gen)
-            fg = node_fg_score(self.data, nodes)
-            if fg is not None:
-                self.model.node_fg.copy_(fg)
+            self.model = build_model(self.data, nodes, self.cfg, self.gen)  # sets node_fg too
             self.opt = make_optimizer(self.model, self.cfg)
             self._reset_densify_stats()
             self._prepare_tracks()
@@ -374,6 +181,9 @@ class Trainer:
         vis = d.tracks_vis.clone()
         vis[:, d.val_idx] = False  # never supervise with held-out frames
         has = vis.any(1)
+        if self.model.is_split and d.fg is not None:
+            # static tracks would only pull on frozen static nodes: supervise the moving ones
+            has &= self._moving_tracks(vis)
         if has.sum() == 0:
             return
         first = torch.argmax(vis.to(torch.int8), dim=1)
@@ -389,12 +199,29 @@ class Trainer:
         canon = torch.empty(len(pid), 3, device=self.device)
         idx = torch.empty(len(pid), self.model.bind_k, dtype=torch.long, device=self.device)
         wts = torch.empty(len(pid), self.model.bind_k, device=self.device)
-        for f in torch.unique(f0).tolist():
-            sel = f0 == f
-            x = unproject(d.K[f], d.w2c[f], uv[sel], z[sel])
-            canon[sel], idx[sel], wts[sel] = to_canonical(self.model, x, float(d.times[f]), self.model.bind_k)
+        if self.model.is_split:  # map and bind through the dynamic nodes only
+            from .init_model import _canonicalise
+
+            x = unproject(d.K[f0], d.w2c[f0], uv, z)
+            dyn = torch.nonzero(self.model.node_dyn).squeeze(1)
+            canon = _canonicalise(self.model, x, d.times[f0].to(x.dtype), dyn, self.model.bind_k, False)
+            idx, wts = self.model.bind_points(canon)
+        else:
+            for f in torch.unique(f0).tolist():
+                sel = f0 == f
+                x = unproject(d.K[f], d.w2c[f], uv[sel], z[sel])
+                canon[sel], idx[sel], wts[sel] = to_canonical(self.model, x, float(d.times[f]), self.model.bind_k)
         self.track_ids, self.track_canon, self.track_idx, self.track_w = pid, canon, idx, wts
         self.track_vis = vis
+
+    def _moving_tracks(self, vis: torch.Tensor) -> torch.Tensor:
+        """``[P] bool``: tracks whose median dynamic prior over their visible frames reaches
+        ``cfg.dynamic_threshold``."""
+        from ..priors.dynamic_depth import moving_tracks
+
+        d = self.data
+        return torch.as_tensor(moving_tracks(d.tracks_xy.cpu().numpy(), vis.cpu().numpy(), d.fg.cpu().numpy(),
+                                             self.cfg.dynamic_threshold), device=vis.device)
 
     def _rebind(self):
         """Refresh the binding of the Gaussians and of the lifted track points together.
@@ -409,7 +236,7 @@ class Trainer:
         m.rebind()
         if self.track_canon is not None:
             with torch.no_grad():
-                idx, w = bind_gaussians(self.track_canon, m.node_centers, m.node_radii().detach(), m.bind_k)
+                idx, w = m.bind_points(self.track_canon)
             self.track_idx, self.track_w = idx, w.to(self.track_w.dtype)
 
     def _lr_schedule(self):
@@ -459,7 +286,12 @@ class Trainer:
         d, m, w = self.data, self.model, self.cfg.loss
         pos_t, rot_t, dq_nodes = nodes_t
         target = d.images[f]
-        terms = {"rgb": L.photometric(out.rgb, target, w.ssim) * w.rgb}
+        weight = None
+        if w.rgb_dynamic > 0 and d.fg is not None:
+            # moving pixels are a few % of the image: weight them up so the objects get a
+            # share of the photometric gradient that is not drowned by the background
+            weight = (1.0 + w.rgb_dynamic * (d.fg[f] >= self.cfg.dynamic_threshold).to(target.dtype)).unsqueeze(-1)
+        terms = {"rgb": L.photometric(out.rgb, target, w.ssim, weight) * w.rgb}
         if w.depth > 0 and d.depth is not None:
             prior = d.depth[f]
             valid = (prior > 0) & (out.alpha[..., 0].detach() > 0.5)
@@ -478,8 +310,10 @@ class Trainer:
                                     dq_nodes=dq_nodes)
                 uv, _ = project(d.K[f], d.w2c[f], x)
                 target_uv = d.tracks_xy[self.track_ids[sel], f]
+                # in % of the image width (Huber, linear beyond 0.05 %): at the width of the
+                # image the term vanished next to the photometric one (a 10 px error cost 1e-4)
                 terms["track"] = w.track * L.track_loss(uv, target_uv, torch.ones_like(sel, dtype=torch.bool),
-                                                        float(d.width))
+                                                        float(d.width) / 100.0)
         motion_on = self.step >= self.cfg.warmup_static_steps
         arap_on = w.arap > 0 and m.graph_idx.shape[1] > 0 and motion_on
         static_on = w.static > 0 and motion_on
@@ -540,6 +374,8 @@ class Trainer:
         ``(2ρ / extent)²``, both [N] constants."""
         m = self.model
         s = (1.0 - m.node_fg).clamp(0, 1) ** self.cfg.loss.static_power
+        if m.is_split:  # a dynamic node is never held still; static ones are frozen anyway
+            s = torch.where(m.node_dyn, torch.zeros_like(s), s)
         arm = (2.0 * m.node_radii().detach() / m.extent) ** 2
         return s, arm
 
@@ -559,6 +395,12 @@ class Trainer:
         when the binding or the nodes do (rebind / densification assign new tensors), so it
         is cached on the identity and version of its inputs."""
         m = self.model
+        if m.is_split:  # the class itself: dynamic Gaussians should cover the moving pixels
+            key = (m.gauss_dyn,)
+            c = getattr(self, "_dyn_cache", None)
+            if c is None or c[0][0] is not m.gauss_dyn:
+                self._dyn_cache = c = (key, None, m.gauss_dyn.to(m.means.dtype).contiguous())
+            return c[2]
         key = (m.bind_idx, m.bind_w, m.node_p_dyn)
         versions = tuple(x._version for x in key)
         c = getattr(self, "_dyn_cache", None)
@@ -598,7 +440,11 @@ class Trainer:
                 # the split originals shrink too
                 m.log_scales.data[split] -= math.log(1.6)
             keep = m.opacities() > cfg.opacity_prune
+            g_dyn = m.gauss_dyn[keep]
+            if extra:
+                g_dyn = torch.cat([g_dyn, m.gauss_dyn[src]])
             _edit_gaussians(m, self.opt, keep, extra or None)
+            m.gauss_dyn = g_dyn.contiguous()
             self._rebind()
             if cfg.node_densify:
                 self._densify_nodes()
@@ -635,7 +481,10 @@ class Trainer:
                 par = parent[pick]
                 new_c = m.means[pick].detach().clone()
                 extra = {"node_log_radii": m.node_log_radii[par].detach().clone()}
-                follow, spawn_fg = self._spawn_motion(par, new_c)
+                if m.is_split:  # a spawned node is of its parent's class (a static one rests)
+                    follow, spawn_fg = m.node_dyn[par].clone(), m.node_fg[par].clone()
+                else:
+                    follow, spawn_fg = self._spawn_motion(par, new_c)
                 if m.pos_keys is not None:
                     # a following node starts with exactly its parent's rigid motion: at each
                     # key p_new = p_par + R_par (c_new − c_par) (without R_par the Gaussians
@@ -652,10 +501,12 @@ class Trainer:
                 new_centers = torch.cat([m.node_centers[keep], new_c])
                 new_pdyn = torch.cat([m.node_p_dyn[keep], m.node_p_dyn[par]])
                 new_fg = torch.cat([m.node_fg[keep], spawn_fg])
+                new_dyn = torch.cat([m.node_dyn[keep], follow if m.is_split else torch.ones_like(follow)])
             elif bool(keep.all()):
                 return
             else:
                 new_centers, new_pdyn, new_fg = m.node_centers[keep], m.node_p_dyn[keep], m.node_fg[keep]
+                new_dyn = m.node_dyn[keep]
             if self.static_ref is not None:  # spawned nodes: their starting keys are their reference
                 ref_p, ref_q = self.static_ref[0][keep], self.static_ref[1][keep]
                 if extra is not None and "pos_keys" in extra:
@@ -666,8 +517,11 @@ class Trainer:
             m.node_centers = new_centers.contiguous()
             m.node_p_dyn = new_pdyn.contiguous()
             m.node_fg = new_fg.contiguous()
+            m.node_dyn = new_dyn.contiguous()
             k = m.graph_idx.shape[1] if m.graph_idx.numel() else 0
-            if k:
+            if k and m.is_split:
+                m.graph_idx = graph_within_class(new_centers, m.node_dyn, k)
+            elif k:
                 m.graph_idx = node_graph(new_centers.cpu(), k)[0].to(self.device)
             self._rebind()
 
@@ -751,6 +605,9 @@ class Trainer:
         dev = self.device
         if "node_fg" not in sd:  # a checkpoint from before the static-motion score
             sd["node_fg"] = torch.zeros_like(sd["node_p_dyn"])
+        # a checkpoint from before the static / dynamic split: one class
+        sd.setdefault("node_dyn", torch.ones(sd["node_p_dyn"].shape, dtype=torch.bool))
+        sd.setdefault("gauss_dyn", torch.ones(sd["means"].shape[0], dtype=torch.bool))
         g = sd["means"].shape[0]
         gen = torch.Generator()
         gen.manual_seed(0)
@@ -813,6 +670,8 @@ class Trainer:
                 self.opt.zero_grad(set_to_none=True)
                 with ph("backward"):
                     loss.backward()
+                if self.model.is_split and self.model.pos_keys is not None:
+                    freeze_static_nodes(self.model.pos_keys, self.model.rot_keys, self.model.node_dyn)
                 if self.step < cfg.warmup_static_steps:  # static warm-up: motion frozen
                     for group in self.opt.param_groups:
                         if group["name"] in motion_groups:

@@ -196,7 +196,9 @@ def test_trajectory_fg_score_reads_the_prior_frame_by_frame(tmp_path, scene):
 
 def test_static_motion_term_pulls_only_static_nodes_and_spares_constant_offsets(tmp_path, scene):
     data, truth = scene
-    trainer = Trainer(data, make_nodes(truth), _cfg(loss={"static": 1.0}), tmp_path / "st")
+    # the static-motion term of the single-class model (split off: with the split, static
+    # nodes are frozen outright and dynamic ones are never penalised)
+    trainer = Trainer(data, make_nodes(truth), _cfg(split=False, loss={"static": 1.0}), tmp_path / "st")
     m = trainer.model
     with torch.no_grad():
         m.pos_keys[:20] += torch.tensor([0.3, -0.2, 0.1])  # a constant offset is no motion
@@ -218,7 +220,7 @@ def test_static_power_spares_ambiguous_nodes_more_than_static_ones(tmp_path, sce
     data, truth = scene
     cost = {}
     for power in (1.0, 3.0):
-        trainer = Trainer(data, make_nodes(truth), _cfg(loss={"static": 1.0, "static_power": power}),
+        trainer = Trainer(data, make_nodes(truth), _cfg(split=False, loss={"static": 1.0, "static_power": power}),
                           tmp_path / f"p{power}")
         m = trainer.model
         with torch.no_grad():
@@ -243,7 +245,8 @@ def test_static_init_measures_motion_beyond_the_initial_trajectory(tmp_path, sce
     follow node densification and survive a checkpoint."""
     data, truth = scene
     for a in (0.0, 1.0):
-        trainer = Trainer(data, make_nodes(truth), _cfg(loss={"static": 1.0, "static_init": a}), tmp_path / f"i{a}")
+        trainer = Trainer(data, make_nodes(truth), _cfg(split=False, loss={"static": 1.0, "static_init": a}),
+                          tmp_path / f"i{a}")
         m = trainer.model
         with torch.no_grad():
             m.node_fg[:] = 0.0  # every node counts as static
@@ -264,8 +267,8 @@ def test_static_init_measures_motion_beyond_the_initial_trajectory(tmp_path, sce
     spawned = torch.arange(m.num_nodes) >= n0
     assert torch.equal(trainer.static_ref[0][spawned], m.pos_keys.detach()[spawned])
     path = trainer.save_checkpoint()
-    again = Trainer(data, make_nodes(truth), _cfg(loss={"static": 1.0, "static_init": 1.0}), path.parent.parent,
-                    resume=True)
+    again = Trainer(data, make_nodes(truth), _cfg(split=False, loss={"static": 1.0, "static_init": 1.0}),
+                    path.parent.parent, resume=True)
     assert torch.equal(again.static_ref[0], trainer.static_ref[0].cpu())
 
 
@@ -326,8 +329,10 @@ def test_spawned_nodes_follow_a_moving_parent_only_where_the_prior_moves(tmp_pat
     radii[20:] = 0.03
     few = _subset(nodes, slice(0, 22), radii=radii)
     # canonical_time=-1: keep the hand-set tiny radii (a shared canonical time recomputes them)
-    trainer = Trainer(data, few, _cfg(node_add_max=16, num_nodes=22, node_spawn_factor=2.0, canonical_time=-1.0),
-                      tmp_path / "blob")
+    # split off: this is the single-class model's spawn rule (_spawn_motion); with the split
+    # a spawned node takes its parent's class (tests/engine/test_split.py)
+    trainer = Trainer(data, few, _cfg(node_add_max=16, num_nodes=22, node_spawn_factor=2.0, canonical_time=-1.0,
+                                      split=False), tmp_path / "blob")
     n0 = trainer.model.num_nodes
     trainer._densify_nodes()
     m = trainer.model

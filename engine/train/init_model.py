@@ -1,0 +1,332 @@
+"""Building the model before training: nodes in canonical space, Gaussians seeded from the
+frames and mapped into it, and the static / dynamic split (``engine/train/split.py``).
+
+``build_model(data, nodes, cfg, gen)`` is the entry point. With ``cfg.split`` the model
+has static nodes (rest keys, frozen during training) carrying the static Gaussians,
+seeded from the static pixels of ``cfg.init_keyframes`` frames, and dynamic nodes
+carrying dynamic Gaussians seeded densely from the moving pixels of every training frame
+(:func:`dynamic_gaussians`) -- so each moving object is seen at every time, not at
+eight keyframes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .. import bundle as B
+from ..errors import InputError
+from ..geometry.binding import bind_gaussians
+from ..geometry.camera import project, unproject
+from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
+from ..geometry.quaternion import quat_conj
+from .config import TrainConfig
+from .data import TrainingData
+from .model import DynamicScene
+
+
+def to_canonical(model_like, points: torch.Tensor, t: float, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Invert the node deformation at time ``t`` for world points observed at ``t``.
+
+    Binds ``points [P, 3]`` to the nodes' positions *at time t*, blends the node
+    transforms and applies the inverse rigid transform. Returns canonical points
+    ``[P, 3]`` and their binding ``(idx, w)``. Exact when the bound nodes move rigidly
+    together; a good initial guess otherwise.
+    """
+    with torch.no_grad():
+        pos, rot = model_like.node_state(t)
+        radii = model_like.node_radii()
+        idx, w = bind_gaussians(points, pos, radii, k)
+        dq = dq_blend(node_transforms_dq(model_like.node_centers, pos, rot), idx, w)
+        qr, qd = dq[:, :4], dq[:, 4:]
+        # inverse of a unit dual quaternion is its quaternion conjugate (both parts)
+        inv = torch.cat([quat_conj(qr), quat_conj(qd)], dim=-1)
+        canon = dq_apply_points(inv, points)
+        idx_c, w_c = bind_gaussians(canon, model_like.node_centers, radii, k)
+    return canon, idx_c, w_c
+
+
+class _NodeMotion(torch.nn.Module):
+    """Node-only view of the motion, used before the Gaussians exist."""
+
+    def __init__(self, model: DynamicScene):
+        super().__init__()
+        self.m = model
+
+    def node_state(self, t):
+        return self.m.node_state(t)
+
+    def node_radii(self):
+        return self.m.node_radii()
+
+    @property
+    def node_centers(self):
+        return self.m.node_centers
+
+
+def _back_project(data: TrainingData, f: int, py: torch.Tensor, px: torch.Tensor, footprint_px: float):
+    """World points, colours, isotropic scales and times of pixels ``(py, px) [P]`` of frame
+    ``f`` (pixels without depth dropped); a Gaussian covers ~``footprint_px`` pixels."""
+    z = data.depth[f][py, px]
+    ok = z > 0
+    py, px, z = py[ok], px[ok], z[ok]
+    uv = torch.stack([px.to(z.dtype) + 0.5, py.to(z.dtype) + 0.5], -1)
+    x = unproject(data.K[f], data.w2c[f], uv, z)
+    scale = (0.5 * footprint_px * z / data.K[f, 0, 0]).unsqueeze(-1).expand(-1, 3)
+    return x, data.images[f, py, px], scale, torch.full_like(z, float(data.times[f]))
+
+
+def initial_gaussians(data: TrainingData, cfg: TrainConfig, gen: torch.Generator, static_only: bool = False):
+    """Back-project pixels of ``cfg.init_keyframes`` training frames (depth + colour).
+
+    With ``static_only`` pixels the dynamic prior marks as moving (``>= cfg.dynamic_threshold``)
+    are skipped: a moving object sampled at a few keyframes and left undeformed is a row
+    of frozen copies of it (:func:`dynamic_gaussians` seeds moving content instead).
+
+    Returns world positions ``[G, 3]``, colours ``[G, 3]``, isotropic scales ``[G, 3]``,
+    and the engine time each point was observed at ``[G]``.
+    """
+    if data.depth is None:
+        raise InputError("training needs a depth prior to place the initial Gaussians", None,
+                         "compute priors first (python -m engine prepare) or supply precomputed depth")
+    train = data.train_idx
+    n_key = min(cfg.init_keyframes, len(train))
+    pick = train[torch.linspace(0, len(train) - 1, n_key).round().long()]
+    h, w = data.height, data.width
+    per = cfg.gaussians_per_frame
+    footprint = math.sqrt(h * w / per)
+    out = []
+    for f in pick.tolist():  # a handful of keyframes; per-pixel work is vectorised
+        flat = torch.randint(0, h * w, (per,), generator=gen, device="cpu").to(data.depth.device)
+        py, px = flat // w, flat % w
+        if static_only and data.fg is not None:
+            still = data.fg[f][py, px] < cfg.dynamic_threshold
+            py, px = py[still], px[still]
+        out.append(_back_project(data, f, py, px, footprint))
+    return tuple(torch.cat(parts) for parts in zip(*out))
+
+
+def dynamic_gaussians(data: TrainingData, cfg: TrainConfig, gen: torch.Generator):
+    """Seed ``cfg.dynamic_gaussians`` Gaussians on the moving pixels of *every* training frame.
+
+    Each frame gets a share proportional to its moving area (so a small object is not
+    oversampled), drawn uniformly among its pixels with the dynamic prior at least
+    ``cfg.dynamic_threshold``. Their footprint matches the density: ~``sqrt(area / n)``
+    pixels. Returns ``(world [D, 3], colours [D, 3], scales [D, 3], times [D])``; empty
+    without a prior or moving pixels.
+    """
+    dev = data.images.device
+    empty = (torch.zeros(0, 3, device=dev),) * 3 + (torch.zeros(0, device=dev),)
+    if data.fg is None or cfg.dynamic_gaussians <= 0 or data.depth is None:
+        return empty
+    train = data.train_idx
+    moving = data.fg[train] >= cfg.dynamic_threshold  # [T, H, W]
+    area = moving.flatten(1).sum(1).to(torch.float32)  # [T]
+    total = float(area.sum())
+    if total < 1:
+        return empty
+    share = torch.floor(area / total * cfg.dynamic_gaussians).long().tolist()
+    out = []
+    for f, n_f, m_f in zip(train.tolist(), share, moving):  # frames; pixels vectorised
+        if n_f <= 0:
+            continue
+        ys, xs = torch.nonzero(m_f, as_tuple=True)
+        pick = torch.randint(0, len(ys), (n_f,), generator=gen, device="cpu").to(ys.device)
+        footprint = math.sqrt(len(ys) / n_f)
+        out.append(_back_project(data, f, ys[pick], xs[pick], footprint))
+    if not out:
+        return empty
+    return tuple(torch.cat(parts) for parts in zip(*out))
+
+
+class _NodeSubset(torch.nn.Module):
+    """Nodes ``sel [S]`` of a model, as the node-only view :func:`to_canonical` reads."""
+
+    def __init__(self, model: DynamicScene, sel: torch.Tensor):
+        super().__init__()
+        self.m, self.sel = model, sel
+
+    def node_state(self, t):
+        pos, rot = self.m.node_state(t)
+        return pos[self.sel], rot[self.sel]
+
+    def node_radii(self):
+        return self.m.node_radii()[self.sel]
+
+    @property
+    def node_centers(self):
+        return self.m.node_centers[self.sel]
+
+
+def _canonicalise(probe: DynamicScene, pts: torch.Tensor, tms: torch.Tensor, node_sel: torch.Tensor | None,
+                  k: int, identity: bool) -> torch.Tensor:
+    """Map points observed at times ``tms`` to canonical space through nodes ``node_sel``
+    (all when None); one inversion per distinct time."""
+    if identity or len(pts) == 0:
+        return pts.clone()
+    view = _NodeMotion(probe) if node_sel is None else _NodeSubset(probe, node_sel)
+    canon = torch.empty_like(pts)
+    for t in torch.unique(tms).tolist():  # one inversion per observation time
+        sel = tms == t
+        canon[sel] = to_canonical(view, pts[sel], t, k)[0]
+    return canon
+
+
+def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: torch.Generator) -> DynamicScene:
+    """Create the model: nodes from ``nodes``, Gaussians back-projected into canonical space.
+
+    With ``cfg.split`` (and a dynamic prior) nodes are classed dynamic / static
+    (:func:`engine.train.split.node_dynamic_flags` on the initialiser's ``p_dyn`` and the
+    prior along each node's initial trajectory), static nodes are put at rest, the ARAP
+    graph links each class within itself, static Gaussians come from the static pixels of
+    the keyframes and dynamic ones from the moving pixels of every training frame, mapped
+    to canonical space through the dynamic nodes only.
+    """
+    from .split import graph_within_class, node_dynamic_flags
+
+    dev, dt = data.images.device, torch.float32
+    as_t = lambda a: torch.as_tensor(np.asarray(a), device=dev, dtype=dt)  # noqa: E731
+    key_times, pos_keys, rot_keys = as_t(nodes.key_times), as_t(nodes.pos_keys), as_t(nodes.rot_keys)
+    graph = torch.as_tensor(nodes.graph_idx, device=dev) if nodes.graph_idx is not None else None
+    centers, radii = as_t(nodes.centers), as_t(nodes.radii)
+    p_dyn = as_t(nodes.p_dyn) if nodes.p_dyn is not None else torch.zeros(len(centers), device=dev)
+    fg_score = node_fg_score(data, nodes)
+    node_dyn = None
+    if cfg.split and fg_score is not None:
+        node_dyn = node_dynamic_flags(p_dyn, fg_score, cfg.dynamic_threshold)
+        if not bool(node_dyn.any()) or bool(node_dyn.all()):
+            node_dyn = None  # nothing moves, or nothing is still: one class
+    if node_dyn is not None:
+        # static nodes rest where they were seen (their keys never train)
+        rest = centers.unsqueeze(1).expand_as(pos_keys)
+        pos_keys = torch.where(node_dyn[:, None, None], pos_keys, rest)
+    if cfg.motion != "mlp" and cfg.canonical_time >= 0:
+        pos_tan = as_t(nodes.pos_tangents) if node_dyn is None else None
+        centers, radii, graph = common_canonical_nodes(data, key_times, pos_keys, pos_tan, cfg.canonical_time, graph)
+    if node_dyn is not None and graph is not None:
+        graph = graph_within_class(centers, node_dyn, graph.shape[1])
+    if cfg.motion == "per_frame":
+        # one key per training frame, initialised by sampling the initial spline there
+        from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_eval_quat
+
+        ft = torch.unique(data.times[data.train_idx]).to(dt)
+        pos_tan = as_t(nodes.pos_tangents) if node_dyn is None else catmull_rom_tangents(key_times, pos_keys)
+        pos_keys = hermite_eval(key_times, pos_keys, pos_tan, ft)
+        rot_keys = hermite_eval_quat(key_times, rot_keys, as_t(nodes.rot_tangents), ft)
+        key_times = ft
+    # Nodes alone first (one dummy Gaussian) to map observed points to canonical space.
+    probe = DynamicScene(centers[:1].clone(), torch.zeros(1, 3, device=dev), torch.ones(1, 3, device=dev),
+                         torch.full((1,), 0.5, device=dev), centers, radii, key_times, pos_keys,
+                         rot_keys, sh_degree=cfg.sh_degree, motion="spline", bind_k=cfg.bind_k,
+                         graph_idx=graph, node_p_dyn=p_dyn, extent=data.extent)
+    identity = cfg.motion == "mlp"  # the MLP starts at identity motion
+    if node_dyn is None:
+        pts, cols, scl, tms = initial_gaussians(data, cfg, gen)
+        canon = _canonicalise(probe, pts, tms, None, cfg.bind_k, identity)
+        g_dyn = None
+    else:
+        s_pts, s_cols, s_scl, _ = initial_gaussians(data, cfg, gen, static_only=True)
+        d_pts, d_cols, d_scl, d_tms = dynamic_gaussians(data, cfg, gen)
+        d_canon = _canonicalise(probe, d_pts, d_tms, torch.nonzero(node_dyn).squeeze(1), cfg.bind_k, identity)
+        canon = torch.cat([s_pts, d_canon])  # static points are where they were seen
+        cols, scl = torch.cat([s_cols, d_cols]), torch.cat([s_scl, d_scl])
+        g_dyn = torch.cat([torch.zeros(len(s_pts), dtype=torch.bool, device=dev),
+                           torch.ones(len(d_pts), dtype=torch.bool, device=dev)])
+    model = DynamicScene(canon, cols.clamp(0, 1), scl, torch.full((len(canon),), 0.3, device=dev), centers,
+                         radii, key_times, pos_keys, rot_keys, sh_degree=cfg.sh_degree,
+                         motion=cfg.motion, bind_k=cfg.bind_k, graph_idx=graph, node_p_dyn=p_dyn,
+                         extent=data.extent)
+    if fg_score is not None:
+        model.node_fg.copy_(fg_score)
+    if node_dyn is not None:
+        model.node_dyn = node_dyn.clone()
+        model.gauss_dyn = g_dyn
+        model.rebind()
+    return model
+
+
+def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys: torch.Tensor,
+                           pos_tangents: torch.Tensor, t_rel: float, graph: torch.Tensor | None):
+    """Canonical node centres at one shared time: each node's initial position there.
+
+    An initialiser places every node where it was seen, at its own source frame; nodes on a
+    moving part seen at different keyframes then sit where the part was at *different*
+    times. Used as canonical centres, that mixes times: a Gaussian's canonical position
+    blends frames its nodes disagree on, and the canonical K-NN binding (and every rebind)
+    can then pick nodes of another part, or static ones, that happen to lie near that
+    blend — on a part moving more than its width between keyframes (a forearm) its
+    Gaussians lag. Taking every centre at one time ``t_c`` (the training frame nearest
+    ``t_rel`` of the way through the training frames) makes canonical space the scene at
+    ``t_c``. With identity rotations (every initialiser) the node transforms at any ``t``
+    are unchanged in meaning (translation ``pos(t) - c``), radii and the ARAP graph are
+    recomputed from the new centres (at ``t_c`` neighbours are true neighbours).
+
+    key_times [K], pos_keys / pos_tangents [N, K, 3] -> centres [N, 3], radii [N],
+    graph [N, k] (``None`` in, ``None`` out).
+    """
+    from ..geometry.hermite import hermite_eval
+    from ..nodes import NodeInitConfig
+    from ..nodes.graph import node_graph, node_radii
+
+    from ..geometry.hermite import catmull_rom_tangents
+
+    if pos_tangents is None:
+        pos_tangents = catmull_rom_tangents(key_times, pos_keys)
+    times = torch.sort(data.times[data.train_idx].to(pos_keys.dtype)).values
+    t_c = times[int(round(t_rel * (len(times) - 1)))].reshape(1)
+    centers = hermite_eval(key_times, pos_keys, pos_tangents, t_c)[:, 0]
+    ncfg = NodeInitConfig()
+    radii = node_radii(centers, ncfg.radius_k, ncfg.radius_factor)
+    if graph is not None:
+        graph = node_graph(centers, graph.shape[1])[0]
+    return centers, radii, graph
+
+
+@torch.no_grad()
+def node_fg_score(data: TrainingData, nodes: B.NodeArrays, occlusion_tol: float = 0.2) -> torch.Tensor | None:
+    """Per-node dynamic score [N] in [0, 1] from the foreground/dynamic prior, the same for
+    every initialiser and motion model.
+
+    Each node follows its *initial* trajectory (the spline the initialiser fitted to the
+    tracks) through the training frames; the score is :func:`trajectory_fg_score` of it.
+    Nodes never in view get the initialiser's ``p_dyn``. None without a prior.
+    """
+    from ..geometry.hermite import hermite_eval
+
+    if data.fg is None:
+        return None
+    dev, dt = data.images.device, torch.float32
+    as_t = lambda a: torch.as_tensor(np.asarray(a), device=dev, dtype=dt)  # noqa: E731
+    times = data.times[data.train_idx].to(dt)
+    pos = hermite_eval(as_t(nodes.key_times), as_t(nodes.pos_keys), as_t(nodes.pos_tangents), times)  # [N, T, 3]
+    fallback = as_t(nodes.p_dyn) if nodes.p_dyn is not None else torch.zeros(pos.shape[0], device=dev)
+    return trajectory_fg_score(data, pos, fallback, occlusion_tol)
+
+
+def trajectory_fg_score(data: TrainingData, pos: torch.Tensor, fallback: torch.Tensor,
+                        occlusion_tol: float = 0.2) -> torch.Tensor:
+    """Mean dynamic prior along trajectories ``pos [N, T, 3]`` (world positions at the
+    training frames ``data.train_idx``, in that order) -> [N] in [0, 1].
+
+    The prior is read at each position's projection over the frames where it is in view
+    and not behind the prior's depth (``occlusion_tol`` relative; merged nodes may sit a
+    little inside an object), so a static point that a moving object passes in front of
+    stays static. Points never in view get ``fallback [N]``. Requires ``data.fg``.
+    """
+    h, w = data.height, data.width
+    dev = pos.device
+    idx = data.train_idx.to(dev)
+    # every (point, frame) pair at once: the cameras broadcast over the points
+    uv, z = project(data.K[idx][None], data.w2c[idx][None], pos)  # [N, T, 2], [N, T]
+    px, py = uv[..., 0].floor().long(), uv[..., 1].floor().long()
+    ok = (z > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+    px, py = px.clamp(0, w - 1), py.clamp(0, h - 1)
+    ff = idx[None].expand_as(px)
+    if data.depth is not None:
+        dz = data.depth[ff, py, px]
+        ok &= (dz <= 0) | (z <= dz * (1 + occlusion_tol))
+    acc = torch.where(ok, data.fg[ff, py, px], 0.0).sum(1)
+    cnt = ok.sum(1).to(acc.dtype)
+    return torch.where(cnt > 0, acc / cnt.clamp_min(1), fallback.to(dev)).clamp(0, 1)

@@ -1,0 +1,119 @@
+"""Static / dynamic split of nodes and Gaussians.
+
+Why: with one K-nearest-node binding over every node, a Gaussian on a moving object is
+blended with the static background nodes next to it (and a background Gaussian with the
+moving nodes): at the RBF weights of the demo scenes a moving Gaussian bound to two moving
+and two static nodes follows its object at about half speed, so the object smears into a
+ghost along its path, and ARAP edges between moving and static nodes pull the moving ones
+still. Splitting the model the way Shape of Motion / MoSca do fixes the mechanism:
+
+* every node is *dynamic* or *static* (:func:`node_dynamic_flags`, from the dynamic prior);
+  static nodes keep their rest keys (their gradients are zeroed), so the Gaussians they
+  carry are undeformed;
+* every Gaussian is dynamic or static (where it was seeded: the dynamic prior at its
+  pixel), and binds only to nodes of its own class (:func:`bind_within_class`);
+* the ARAP graph links nodes of the same class only (:func:`graph_within_class`).
+
+With every flag True the model is the single-class model of before.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..geometry.binding import bind_gaussians, rbf_weights
+
+
+def node_dynamic_flags(p_dyn: torch.Tensor, node_fg: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
+    """Dynamic nodes ``[N] bool``: the initialiser's dynamic tendency ``p_dyn`` (the prior
+    where the node was seen) or the prior along the node's initial trajectory ``node_fg``
+    reaches ``threshold``. Both count: a node that starts at rest on a fast object sees the
+    object only in the frames it passes (low ``node_fg``) but was seeded on it (high
+    ``p_dyn``); a track-fitted node follows its object (high ``node_fg``)."""
+    return torch.maximum(p_dyn, node_fg) >= threshold
+
+
+def _knn_rbf(points: torch.Tensor, nodes: torch.Tensor, radii: torch.Tensor, k: int):
+    """K nearest ``nodes [M, 3]`` of ``points [P, 3]`` with RBF weights; ``k`` may exceed M
+    (the nearest node repeats with weight 0)."""
+    kk = min(k, nodes.shape[0])
+    if points.shape[0] == 0:
+        return (torch.zeros(0, k, dtype=torch.long, device=points.device),
+                torch.zeros(0, k, dtype=points.dtype, device=points.device))
+    from .fused import fused_available, fused_knn
+
+    if fused_available(points, nodes) and nodes.shape[0] >= kk:
+        idx = fused_knn(points.contiguous(), nodes.contiguous(), kk).to(points.device)
+        diff = points.unsqueeze(1) - nodes[idx]
+        w = rbf_weights((diff * diff).sum(-1), radii[idx])
+    else:
+        idx, w = bind_gaussians(points, nodes, radii, kk)
+    if kk < k:  # pad: repeat the nearest node with zero weight
+        pad = k - kk
+        idx = torch.cat([idx, idx[:, :1].expand(-1, pad)], 1)
+        w = torch.cat([w, torch.zeros(w.shape[0], pad, dtype=w.dtype, device=w.device)], 1)
+    return idx, w
+
+
+def bind_within_class(points: torch.Tensor, point_dyn: torch.Tensor, nodes: torch.Tensor, node_dyn: torch.Tensor,
+                      radii: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bind each point to its ``k`` nearest nodes *of its own class*.
+
+    Parameters
+    ----------
+    points : [P, 3] canonical positions; point_dyn : [P] bool;
+    nodes : [N, 3] canonical node centres; node_dyn : [N] bool; radii : [N].
+
+    Returns
+    -------
+    idx : [P, k] long (into all N nodes), w : [P, k] normalised RBF weights. A class
+    without nodes falls back to every node (so a scene with no moving node is the
+    single-class model).
+    """
+    idx = torch.zeros(points.shape[0], k, dtype=torch.long, device=points.device)
+    w = torch.zeros(points.shape[0], k, dtype=points.dtype, device=points.device)
+    all_nodes = torch.arange(nodes.shape[0], device=nodes.device)
+    for cls in (True, False):  # two classes, each one vectorised K-NN
+        sel_p = point_dyn == cls
+        if not bool(sel_p.any()):
+            continue
+        sel_n = node_dyn == cls
+        ids = all_nodes[sel_n] if bool(sel_n.any()) else all_nodes
+        i, wi = _knn_rbf(points[sel_p], nodes[ids], radii[ids], k)
+        idx[sel_p] = ids[i]
+        w[sel_p] = wi.to(w.dtype)
+    return idx, w
+
+
+def graph_within_class(centers: torch.Tensor, node_dyn: torch.Tensor, k: int) -> torch.Tensor:
+    """``[N, k]`` neighbour indices among nodes of the same class (a class smaller than
+    ``k + 1`` repeats its nearest neighbour; a class of one links to itself, which ARAP
+    reads as a zero-length edge)."""
+    from ..nodes.graph import node_graph
+
+    n = centers.shape[0]
+    out = torch.arange(n, device=centers.device).unsqueeze(1).expand(n, k).clone()
+    all_nodes = torch.arange(n, device=centers.device)
+    for cls in (True, False):
+        ids = all_nodes[node_dyn == cls]
+        m = ids.shape[0]
+        if m < 2:
+            continue
+        kk = min(k, m - 1)
+        g = node_graph(centers[ids].cpu(), kk)[0].to(centers.device)
+        if kk < k:
+            g = torch.cat([g, g[:, :1].expand(-1, k - kk)], 1)
+        out[ids] = ids[g]
+    return out
+
+
+def freeze_static_nodes(pos_keys: torch.Tensor | None, rot_keys: torch.Tensor | None, node_dyn: torch.Tensor) -> None:
+    """Zero the gradients of static nodes' keys (call between backward and the optimiser
+    step): with zero gradients from the first step Adam's moments stay zero, so the keys
+    never move and the Gaussians bound to them stay undeformed."""
+    static = ~node_dyn
+    if not bool(static.any()):
+        return
+    for keys in (pos_keys, rot_keys):
+        if keys is not None and keys.grad is not None:
+            keys.grad[static] = 0.0
