@@ -170,7 +170,8 @@ class MOTIONSPLATS_OT_export_clip_manifest(ExportHelper, bpy.types.Operator):
     filter_glob: StringProperty(default="*.json", options={"HIDDEN"})
     clip: EnumProperty(name="Clip", items=_clip_items)
     with_cameras: BoolProperty(name="Cameras", default=True,
-                               description="Include the scene camera per frame (else the engine solves them)")
+                               description="Include the scene camera per frame when it moves (else the engine "
+                               "solves them)")
 
     @classmethod
     def poll(cls, context):
@@ -180,12 +181,16 @@ class MOTIONSPLATS_OT_export_clip_manifest(ExportHelper, bpy.types.Operator):
         clip = bpy.data.movieclips.get(self.clip) if self.clip else None
         if clip is None:
             clip = getattr(getattr(context, "space_data", None), "clip", None) or bpy.data.movieclips[0]
+        from .reconstruct_ops import footage_cameras
+
         try:
-            m = exporters.write_clip_manifest(self.filepath, context.scene, clip, with_cameras=self.with_cameras)
+            cams, note = footage_cameras(context, clip, self.with_cameras)  # a still camera is never sent
+            m = exporters.write_clip_manifest(self.filepath, context.scene, clip, with_cameras=False, cameras=cams)
         except Exception as exc:
             return _fail(self, exc)
-        self.report({"INFO"}, f"Wrote clip manifest for frames {m['frame_start']}..{m['frame_end']} "
-                              f"({len(m['cameras'])} cameras) to {self.filepath}")
+        self.report({"WARNING"} if cams is None and self.with_cameras else {"INFO"},
+                    f"Wrote clip manifest for frames {m['frame_start']}..{m['frame_end']} "
+                    f"({len(m.get('cameras') or [])} cameras) to {self.filepath}. {note}")
         return {"FINISHED"}
 
 

@@ -123,3 +123,14 @@ def test_movie_clip_and_clip_path_never_override_each_other(registered, tmp_path
     s.source = "PATH"
     with pytest.raises(RuntimeError, match="Clip Path not found.*Source to Movie Clip"):
         bpy.ops.motion_splats.reconstruct()
+
+
+def test_export_clip_manifest_never_writes_a_still_camera(registered, tmp_path, clean_jobs):
+    import json
+
+    _setup(registered, tmp_path)
+    _static_factory_camera(bpy.context.scene)
+    assert bpy.ops.motion_splats.import_footage(filepath=str(_sequence(tmp_path / "seq"))) == {"FINISHED"}
+    out = tmp_path / "clip.json"
+    assert bpy.ops.motion_splats.export_clip_manifest(filepath=str(out)) == {"FINISHED"}
+    assert not json.loads(out.read_text()).get("cameras")
