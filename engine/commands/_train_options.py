@@ -94,11 +94,35 @@ def prior_config_from_args(args):
         cfg.flow_backend, cfg.flow_model = "onnx", args.flow_model
     cfg.depth_output = getattr(args, "depth_output", None)
     cfg.depth_path, cfg.mask_path, cfg.tracks_path = args.depth_path, args.mask_path, args.tracks_path
+    given = manifest_priors(args.clip)  # a clip manifest's own precomputed priors, unless an option overrides
+    cfg.depth_path = cfg.depth_path or given.get("depth")
+    cfg.mask_path = cfg.mask_path or given.get("mask")
+    cfg.tracks_path = cfg.tracks_path or given.get("tracks")
     if getattr(args, "no_models", False):
         return cfg
     from ..models import resolve_prior_models  # backend auto: installed models fill the open roles
 
     return resolve_prior_models(cfg, explicit={"flow"} if getattr(args, "flow_backend", None) else ())
+
+
+def manifest_priors(clip) -> dict[str, str]:
+    """``{"depth"|"mask"|"tracks": path}`` from a clip manifest's ``priors`` (``{}`` for other clips).
+
+    Paths are relative to the manifest and confined like its frames
+    (:func:`engine.io.manifest.media_path`).
+    """
+    from pathlib import Path
+
+    from ..io.clip import load_json
+    from ..io.manifest import PRIOR_EXTS, is_manifest, media_path, validate_manifest
+
+    path = Path(clip)
+    if not is_manifest(path):
+        return {}
+    m = load_json(path)
+    validate_manifest(m, path)
+    return {k: str(media_path(path.parent, v, PRIOR_EXTS, f"priors.{k}", path))
+            for k, v in (m.get("priors") or {}).items()}
 
 
 def clip_options(args) -> dict:

@@ -42,10 +42,13 @@ def load_clip(path, **options) -> Clip:
     clip, never a traceback.
     """
     try:
-        return _load_clip(path, **options)
+        clip = _load_clip(path, **options)
     except (ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
         raise InputError(f"malformed clip data ({type(exc).__name__}: {str(exc)[:160]}).", path,
                          "Check the dataset files against the documented layout (docs/clip_manifest.md).") from None
+    if clip.source is not None:  # recorded in scene.json: eval/finetune from another folder must find it
+        clip.source = Path(clip.source).resolve()
+    return clip
 
 
 def _load_clip(path, **options) -> Clip:

@@ -80,6 +80,12 @@ def _overwrite_missing_clip(t):
     return ["train", str(t / "missing"), "--out", str(b), "--overwrite"]
 
 
+def _overwrite_bad_clip(t):
+    argv = _overwrite_missing_clip(t)
+    argv[1] = str(fx.manifest(t / "m", fps=-1))
+    return argv
+
+
 def _out_is_input(t):
     d = fx.nerfies(t / "ds")
     return ["train", str(d), "--out", str(d), "--overwrite"]
@@ -179,6 +185,9 @@ CASES = {
                               "outside"),
     "manifest video escapes": (lambda t: _train(t, fx.manifest(t / "m", frames=None, video="/etc/passwd")),
                                "outside"),
+    "manifest priors unknown name": (lambda t: _train(t, fx.manifest(t / "m", priors={"normals": "n.npy"})),
+                                     "'priors'"),
+    "overwrite with a bad manifest": (lambda t: _overwrite_bad_clip(t), "'fps'"),
     "manifest priors not a map": (lambda t: _train(t, fx.manifest(t / "m", priors=["depth.npy"])), "'priors'"),
     # ------------------------------------------------------------- datasets
     "dnerf angle string": (lambda t: _train(t, fx.dnerf(t / "d", camera_angle_x="wide")), "camera_angle_x"),

@@ -1,0 +1,27 @@
+"""A clip manifest's own priors are used, and the clip path a bundle records is absolute."""
+
+from pathlib import Path
+
+from engine.cli import build_parser
+from engine.commands._train_options import prior_config_from_args
+from engine.io import load_clip
+
+from . import _bad_input_fixtures as fx
+
+
+def test_manifest_priors_feed_the_prior_config(tmp_path):
+    clip = fx.manifest(tmp_path / "m", priors={"depth": "depth.npy", "tracks": "../elsewhere/tracks.npz"})
+    args = build_parser().parse_args(["train", str(clip), "--out", str(tmp_path / "o"), "--no-models"])
+    cfg = prior_config_from_args(args)
+    assert Path(cfg.depth_path) == (tmp_path / "m" / "depth.npy").resolve()
+    assert Path(cfg.tracks_path) == (tmp_path / "elsewhere" / "tracks.npz").resolve()  # a .npz may live outside
+    assert cfg.mask_path is None
+    args = build_parser().parse_args(["train", str(clip), "--out", "o", "--no-models", "--depth-path", "mine.npy"])
+    assert prior_config_from_args(args).depth_path == "mine.npy"  # the option wins
+
+
+def test_clip_source_is_absolute(tmp_path, monkeypatch):
+    fx.manifest(tmp_path / "m")
+    monkeypatch.chdir(tmp_path)
+    clip = load_clip("m/clip.json")
+    assert clip.source == (tmp_path / "m" / "clip.json").resolve() and clip.source.is_absolute()
