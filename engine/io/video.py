@@ -47,6 +47,9 @@ def load_video(path, frame_step: int = 1, max_frames: int | None = None, frame_s
         idx = idx[: int(max_frames)]
     if not idx:
         raise InputError(f"no frames selected (video has {n}).", path, "Lower frame_start.")
+    if len(idx) < 2:  # nothing moves in one frame, and no camera can be solved from it
+        raise InputError(f"video has only {len(idx)} usable frame; a reconstruction needs at least 2.", path,
+                         "Use a longer clip (or a lower frame step).")
     return Clip(frames=FrameSource(video=path, indices=idx), width=w, height=h,
                 fps=fps / max(1, int(frame_step)), times=times_from_count(len(idx)),
                 frame_ids=[str(i) for i in idx], source=path, downscale=int(scale))
@@ -61,6 +64,9 @@ def load_image_folder(path, frame_step: int = 1, max_frames: int | None = None, 
         imgs = imgs[: int(max_frames)]
     if not imgs:
         raise InputError(f"no images ({', '.join(IMAGE_EXTS)}) in the folder.", path, "Point at a folder of frames.")
+    if len(imgs) < 2:
+        raise InputError("the folder has only 1 image; a reconstruction needs at least 2 frames.", path,
+                         "Add the clip's other frames.")
     w, h = image_size(imgs[0])
     return Clip(frames=FrameSource(paths=imgs), width=w, height=h, fps=float(fps),
                 times=times_from_count(len(imgs)), frame_ids=[p.name for p in imgs], source=path,

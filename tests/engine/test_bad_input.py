@@ -169,6 +169,9 @@ CASES = {
     "empty folder": (lambda t: (t / "e").mkdir() or _train(t, t / "e"), "e: folder is not a recognised"),
     "text file named .mp4": (lambda t: (t / "v.mp4").write_text("hello") and _train(t, t / "v.mp4"), "v.mp4"),
     "truncated video": (lambda t: _train(t, _truncated_video(t)), "v.avi"),
+    "one-frame video": (lambda t: _train(t, fx.video(t / "one.avi", n=1)), "one.avi"),
+    "one-image folder": (lambda t: (t / "i").mkdir() or fx.cv2.imwrite(str(t / "i" / "a.png"), fx.frames(1)[0])
+                         and _train(t, t / "i"), "only 1 image"),
     "unsupported file": (lambda t: (t / "a.txt").write_text("x") and _train(t, t / "a.txt"), "a.txt"),
     "mixed image sizes": (lambda t: _train(t, fx.image_folder(t / "imgs", {3: (32, 24)}), "--fov", "50"), "0003.png"),
     # ------------------------------------------------------------- manifests

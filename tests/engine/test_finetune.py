@@ -141,3 +141,28 @@ def test_finetune_cancel_changes_nothing(trained, tmp_path):
     assert err["event"] == "error" and "not changed" in err["message"]
     assert {p.name: p.read_bytes() for p in bundle.iterdir() if p.is_file()} == snapshot
     assert not (bundle / "backups").exists()
+
+
+def test_backup_is_all_or_nothing(tmp_path, monkeypatch):
+    """A full disk while backing up leaves no truncated backup that looks complete."""
+    import errno
+    import shutil
+
+    from engine.commands.finetune import _backup
+
+    for name in ("gaussians.ply", "scene.json"):
+        (tmp_path / name).write_text(name)
+    real = shutil.copy2
+
+    def copy2(src, dst, **kw):
+        if str(src).endswith("scene.json"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(src, dst, **kw)
+
+    monkeypatch.setattr(shutil, "copy2", copy2)
+    with pytest.raises(OSError):
+        _backup(tmp_path, ["gaussians.ply", "scene.json"])
+    assert not (tmp_path / "backups").exists() or not list((tmp_path / "backups").iterdir())
+    monkeypatch.setattr(shutil, "copy2", real)
+    dest = _backup(tmp_path, ["gaussians.ply", "scene.json"])
+    assert sorted(p.name for p in dest.iterdir()) == ["gaussians.ply", "scene.json"]
