@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import signal
 import sys
 
@@ -64,9 +65,39 @@ def _raise_keyboard_interrupt(signum, frame):  # SIGTERM -> same clean path as C
     raise KeyboardInterrupt
 
 
+class _ReporterHandler(logging.Handler):
+    """Engine modules' ``logging`` warnings as the reporter's warning events (one line each),
+    so library code without a reporter (e.g. the rasteriser's backend choice) is heard."""
+
+    def __init__(self, reporter: Reporter):
+        super().__init__(logging.WARNING)
+        self.reporter = reporter
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.reporter.log(record.getMessage(), "warning")
+
+
+def forward_warnings(reporter: Reporter) -> logging.Handler:
+    """Route warnings logged under this package (``engine.*``) to ``reporter``; returns the handler."""
+    logger = logging.getLogger(__package__)
+    for old in [h for h in logger.handlers if isinstance(h, _ReporterHandler)]:
+        logger.removeHandler(old)
+    handler = _ReporterHandler(reporter)
+    logger.addHandler(handler)  # a handler here also keeps logging's last-resort stderr copy away
+    return handler
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     reporter = Reporter(jsonl=args.jsonl, quiet=args.quiet)
+    handler = forward_warnings(reporter)
+    try:
+        return _run(args, reporter)
+    finally:
+        logging.getLogger(__package__).removeHandler(handler)
+
+
+def _run(args, reporter: Reporter) -> int:
     if args.threads is not None and not 1 <= args.threads <= 1024:
         reporter.error(f"--threads must be between 1 and 1024 (got {args.threads})", fix="e.g. --threads 4")
         return 2

@@ -3,57 +3,24 @@
 from __future__ import annotations
 
 import importlib.util
-from dataclasses import dataclass
+import logging
 from typing import Optional
 
 import torch
 
+from .output import RenderOutput
 from .sh import sh_to_colors
 
 BACKENDS = ("reference", "cpu", "gsplat")
+#: gsplat version the tests and benchmarks ran (``requirements-gpu.txt`` pins it)
+GSPLAT_TESTED = "1.5.3"
+DENSE_FALLBACK_WARNING = (
+    "gsplat is not installed: CUDA renders fall back to the dense reference rasteriser (O(H*W*N) memory "
+    f"and time, far slower); install the tested version with `pip install gsplat=={GSPLAT_TESTED}` "
+    "(requirements-gpu.txt) or pass --backend reference to silence this")
 
-
-@dataclass
-class RenderOutput:
-    """Result of :func:`render`.
-
-    Attributes
-    ----------
-    rgb : Tensor [H, W, 3]
-        Composited colour, background included (``+ T_final * background``).
-    alpha : Tensor [H, W, 1]
-        Accumulated opacity ``1 - T_final``.
-    depth : Tensor [H, W, 1]
-        Accumulated camera depth ``sum_i w_i z_i`` -- *not* divided by alpha; the expected
-        depth of the visible surface is ``depth / alpha.clamp_min(eps)``.
-    radii : Tensor [N] int32
-        Screen radius ``ceil(3 sigma_max)`` in pixels; 0 = not visible.
-    means2d : Tensor [N, 2] (``[1, N, 2]`` for gsplat, its own tensor)
-        Projected means in pixels; an autograd intermediate with ``retain_grad()`` called,
-        so after ``loss.backward()`` its ``.grad`` holds the 2D-mean gradient. Use
-        :meth:`grad2d` for a backend-independent ``[N, 2]`` view of it.
-    visible : Tensor [N] bool
-        ``radii > 0``.
-    backend : str
-        The backend that ran.
-    extra : Tensor [H, W, 1] or None
-        ``sum_i w_i e_i`` of the ``extra`` per-Gaussian scalar given to :func:`render`
-        (no background), else None.
-    """
-
-    rgb: torch.Tensor
-    alpha: torch.Tensor
-    depth: torch.Tensor
-    radii: torch.Tensor
-    means2d: torch.Tensor
-    visible: torch.Tensor
-    backend: str
-    extra: Optional[torch.Tensor] = None
-
-    def grad2d(self) -> Optional[torch.Tensor]:
-        """Gradient of the loss w.r.t. the 2D means, ``[N, 2]`` (None before backward)."""
-        g = self.means2d.grad
-        return None if g is None else g.reshape(-1, 2)
+log = logging.getLogger(__name__)
+_warned_fallback = False
 
 
 def scales_from_log(log_scales: torch.Tensor) -> torch.Tensor:
@@ -74,15 +41,28 @@ def select_backend(name: str, device: torch.device) -> str:
     """Resolve ``name`` (``'auto'`` or one of :data:`BACKENDS`) for tensors on ``device``.
 
     ``auto``: ``gsplat`` for CUDA tensors when available, ``cpu`` for CPU tensors when Numba
-    is installed, else ``reference``.
+    is installed, else ``reference``. CUDA without gsplat logs
+    :data:`DENSE_FALLBACK_WARNING` once per process (the CLI shows it as a warning event).
     """
     if name not in ("auto",) + BACKENDS:
         raise ValueError(f"unknown raster backend {name!r}; choose auto, {', '.join(BACKENDS)}")
     if name != "auto":
         return name
     if device.type == "cuda":
-        return "gsplat" if gsplat_available() else "reference"
+        if gsplat_available():
+            return "gsplat"
+        _warn_dense_fallback()
+        return "reference"
     return "cpu" if numba_available() else "reference"
+
+
+def _warn_dense_fallback() -> None:
+    """Say once per process that ``auto`` picked the dense rasteriser on CUDA (silent, it
+    looked like a hang: minutes per frame and tens of GB at training sizes)."""
+    global _warned_fallback
+    if not _warned_fallback:
+        _warned_fallback = True
+        log.warning(DENSE_FALLBACK_WARNING)
 
 
 def render(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,

@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import torch
 
+from .output import RenderOutput
+
 
 def render_gsplat(means, quats, scales, opacities, colors, w2c, K, width, height, near, far, background,
                   extra=None):
-    """Render with gsplat; returns :class:`engine.raster.api.RenderOutput`. ``extra [N]``
+    """Render with gsplat; returns :class:`engine.raster.output.RenderOutput`. ``extra [N]``
     rides along as a fourth colour channel (background 0, detached)."""
     import gsplat
-
-    from .api import RenderOutput
 
     dev = means.device
     bg = None if background is None else background.to(dev, means.dtype)
