@@ -163,3 +163,23 @@ def test_sfm_problems_flags_jumps_bad_bundle_adjustment_and_few_points():
     few = _cams(smooth)
     few["registered"][5:] = False
     assert "registered only 5 of 20" in sel.sfm_problems(few, need=10)[0]
+
+
+@pytest.mark.slow
+def test_train_records_the_solve_in_scene_json_and_report(tmp_path):
+    """``engine train`` on a folder of frames without cameras: one announced line, scene.json
+    ``camera_solve`` and the report's camera-path section say which model and why."""
+    import subprocess
+
+    render_clip(tmp_path / "clip", fixed_w2c(12))
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "engine", "train", str(tmp_path / "clip"), "--out", str(out),
+                           "--steps", "5", "--width", "96", "--no-models", "--device", "cpu", "--threads", "1"],
+                          cwd=Path(__file__).resolve().parents[2], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    text = proc.stdout + proc.stderr
+    assert text.count("chosen because") == 1, text[-3000:]
+    rec = json.loads((out / "scene.json").read_text())["camera_solve"]
+    assert rec["model"] in ("static", "rotation") and rec["num_frames"] == 12 and "parallax" in rec["reason"]
+    report = (out / "report" / "report.html").read_text()
+    assert "<h2>Camera path</h2>" in report and rec["model"] in report and report.count("<circle") >= 12
