@@ -39,7 +39,8 @@ class LossWeights:
     arap: float = 1.0         # as-rigid-as-possible on the node graph
     velocity: float = 1e-3    # mild spline velocity regulariser
     acceleration: float = 1e-2  # mild spline acceleration regulariser
-    static: float = 3.0       # motion of nodes the dynamic prior calls static, weighted by (1 - score)^static_power
+    static: float = 1536.0    # motion of nodes the dynamic prior calls static, weighted by (1 - score)^static_power;
+                              # a mean over nodes since #19 (was a sum at 3.0: the same strength at 512 nodes)
     static_power: float = 1.0  # >1 spares ambiguous nodes (score ~0.5: thin moving parts) more than static ones
     static_init: float = 0.0  # 1: measure that motion relative to each node's initial (track-fitted) trajectory
 

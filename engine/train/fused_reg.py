@@ -18,7 +18,7 @@ arap(p0, q0, p1, q1, graph_idx)
     ``∂/∂R_i = −2 Σ_j d_ij e0_ijᵀ`` split over ``A = R(q̂1)``, ``B = R(q̂0)`` as ``G B`` and
     ``Gᵀ A``, then through the rotation matrix and the normalisation.
 key_regularisers(pos_keys, rot_keys, key_times, ...)
-    The static-motion energy ``Σ_i s_i (Var_k p_ik / extent² + arm_i Var_k q̂_ik)`` and the
+    The static-motion energy ``mean_i s_i (Var_k p_ik / extent² + arm_i Var_k q̂_ik)`` and the
     velocity / acceleration energies of ``pos_keys / extent`` (mean squared first / second
     divided differences in key-time units), in one pass over the keys.
 """
@@ -194,6 +194,7 @@ def _key_terms(pk, rk, kt, s, arm, ref_p, ref_q, inv_ext, g_st_p, g_st_q, g_vel,
         return 0.0, 0.0, 0.0
     has_ref = ref_p.shape[0] == N
     inv_k = 1.0 / K
+    inv_n = 1.0 / N  # the static term is a mean over the nodes
     nv = K - 1 if K >= 2 else 0
     na = K - 2 if K >= 3 else 0
     inv_dt = np.empty(max(nv, 1))
@@ -232,8 +233,8 @@ def _key_terms(pk, rk, kt, s, arm, ref_p, ref_q, inv_ext, g_st_p, g_st_q, g_vel,
         mq0, mq1, mq2, mq3 = mq0 * inv_k, mq1 * inv_k, mq2 * inv_k, mq3 * inv_k
         # pass 2: energies and gradients; ∂Var/∂x_k = 2 (x_k − mean) / K (the mean's own
         # term sums to zero)
-        cp = 2.0 * s[i] * inv_k * inv_ext
-        cq = 2.0 * s[i] * arm[i] * inv_k
+        cp = 2.0 * s[i] * inv_k * inv_ext * inv_n
+        cq = 2.0 * s[i] * arm[i] * inv_k * inv_n
         ep = 0.0
         eq = 0.0
         for kk in range(K):
@@ -295,7 +296,7 @@ def _key_terms(pk, rk, kt, s, arm, ref_p, ref_q, inv_ext, g_st_p, g_st_q, g_vel,
         static += part[i, 0]
         vel_sum += part[i, 1]
         acc_sum += part[i, 2]
-    return static, vel_sum * cv * 0.5, acc_sum * ca * 0.5
+    return static * inv_n, vel_sum * cv * 0.5, acc_sum * ca * 0.5
 
 
 class _FusedARAP(torch.autograd.Function):

@@ -234,8 +234,10 @@ def arap_states(pos_t0: torch.Tensor, rot_t0: torch.Tensor, pos_t1: torch.Tensor
 def static_motion_keys(pos_keys: torch.Tensor, rot_keys: torch.Tensor, weight: torch.Tensor, arm: torch.Tensor,
                        extent: float, ref_pos: torch.Tensor | None = None,
                        ref_rot: torch.Tensor | None = None) -> torch.Tensor:
-    """Motion energy of keyed node trajectories: ``Σ_i w_i (Var_k p_ik / extent² +
-    arm_i Var_k q̂_ik)`` (variances over the keys, summed over the components).
+    """Motion energy of keyed node trajectories: ``mean_i w_i (Var_k p_ik / extent² +
+    arm_i Var_k q̂_ik)`` (variances over the keys, summed over the components; a mean over
+    the nodes like ARAP and the smoothness terms, so its weight does not grow with the
+    node count).
 
     Parameters
     ----------
@@ -258,7 +260,7 @@ def static_motion_keys(pos_keys: torch.Tensor, rot_keys: torch.Tensor, weight: t
     pk = pk / extent
     e = ((pk - pk.mean(1, keepdim=True)) ** 2).sum(-1).mean(1)
     e = e + ((q - q.mean(1, keepdim=True)) ** 2).sum(-1).mean(1) * arm
-    return (weight * e).sum()
+    return (weight * e).mean()
 
 
 def spline_smoothness(keys: torch.Tensor, key_times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

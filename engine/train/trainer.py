@@ -348,7 +348,7 @@ class Trainer:
         return loss, metrics, out
 
     def _static_motion(self, pos_t: torch.Tensor, rot_t: torch.Tensor, state_t1=None) -> torch.Tensor:
-        """Motion of the nodes the prior calls static: ``Σ_i (1 − s_i) e_i`` with ``s_i`` the
+        """Motion of the nodes the prior calls static: ``mean_i (1 − s_i) e_i`` with ``s_i`` the
         node's foreground score (:func:`node_fg_score`, the same for every initialiser).
 
         ``e_i`` is the variance over time of the node's position and rotation, in units of
@@ -367,7 +367,7 @@ class Trainer:
             return L.static_motion_keys(m.pos_keys, m.rot_keys, s, arm, m.extent, *self._static_reference())
         pos_1, rot_1 = state_t1
         e = 0.5 * ((((pos_t - pos_1) / m.extent) ** 2).sum(-1) + ((rot_t - rot_1) ** 2).sum(-1) * arm)
-        return (s * e).sum()
+        return (s * e).mean()  # a mean over nodes, like ARAP and smoothness
 
     def _static_weights(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The static-motion term's per-node weight ``(1 − fg)^power`` and rotation arm

@@ -134,3 +134,28 @@ def test_trainer_terms_are_the_same_fused_or_not(tmp_path, monkeypatch, static_i
         assert m0[name] > 0, name
         assert m1[name] == pytest.approx(m0[name], rel=1e-5, abs=1e-12), name
     assert _rel(gp1, gp0) <= 1e-4 and _rel(gq1, gq0) <= 1e-4
+
+
+def test_static_term_is_a_mean_over_nodes_like_arap_and_smoothness():
+    """The same nodes twice (2N) must cost what they cost once (N): the static-motion term is a
+    mean over nodes, so its strength does not grow 4x from 512 to 2048 nodes (#19). The torch
+    reference, the fused kernel and the smoothness terms agree on that."""
+    g = torch.Generator().manual_seed(6)
+    n, k = 30, 7
+    pk, rk = torch.randn(n, k, 3, generator=g), torch.randn(n, k, 4, generator=g)
+    kt = torch.linspace(0, 1, k)
+    s, arm = torch.rand(n, generator=g), torch.rand(n, generator=g)
+    twice = [torch.cat([x, x]) for x in (pk, rk)]
+    s2, arm2 = torch.cat([s, s]), torch.cat([arm, arm])
+    one = L.static_motion_keys(pk.double(), rk.double(), s.double(), arm.double(), 2.0)
+    two = L.static_motion_keys(twice[0].double(), twice[1].double(), s2.double(), arm2.double(), 2.0)
+    assert float(one) > 0 and abs(float(two) - float(one)) <= 1e-12 * float(one)
+    f_one, v_one, _ = fused_key_terms(pk, rk, kt, s, arm, 2.0)
+    f_two, v_two, _ = fused_key_terms(*twice, kt, s2, arm2, 2.0)
+    assert abs(float(f_two) - float(f_one)) <= 1e-6 * float(f_one)
+    assert abs(float(v_two) - float(v_one)) <= 1e-6 * float(v_one)  # the smoothness terms already were means
+    # the per-node weight: one node's cost is the torch mean's 1/N share
+    single = L.static_motion_keys(pk[:1].double(), rk[:1].double(), s[:1].double(), arm[:1].double(), 2.0)
+    e = torch.stack([L.static_motion_keys(pk[i:i + 1].double(), rk[i:i + 1].double(), s[i:i + 1].double(),
+                                          arm[i:i + 1].double(), 2.0) for i in range(n)])
+    assert float(single) == pytest.approx(float(e[0])) and float(one) == pytest.approx(float(e.mean()))
