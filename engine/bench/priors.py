@@ -78,6 +78,16 @@ def add_arguments(parser) -> None:
     parser.add_argument("--solve-masks", choices=("none", "gt"), default="none",
                         help="masks for the camera solve: none (frames alone) or the GT dynamic masks")
     parser.add_argument("--skip-solve", action="store_true", help="no sfm row")
+    parser.add_argument("--flow-backend", choices=("auto", "dis", "onnx"), default=None,
+                        help="optical flow for tracks and mask (PriorConfig.flow_backend; default dis)")
+    parser.add_argument("--flow-model", help="RAFT-contract ONNX flow model (implies --flow-backend onnx)")
+    parser.add_argument("--flow-width", type=int, default=None, help="working width of the learned flow")
+    parser.add_argument("--depth-model", help="ONNX monocular depth model (research weights: benchmark only)")
+    parser.add_argument("--depth-output", choices=("inverse", "depth"), default=None,
+                        help="what --depth-model predicts (default: its sidecar, else inverse)")
+    parser.add_argument("--depth-sidecar", metavar="JSON",
+                        help="sidecar JSON for --depth-model (e.g. '{\"size_multiple\": 64, \"mean\": [0,0,0], "
+                             "\"std\": [1,1,1]}'); the model is linked into a temp folder beside it")
 
 
 # ----------------------------------------------------------------------------------------
@@ -334,7 +344,9 @@ def depth_metrics(depth, gt: SceneGT) -> dict:
     return {"absrel_static": float(rel[st].mean()), "absrel_all": float(rel.mean()),
             "absrel_dynamic": float(rel[dy].mean()) if dy.any() else None,
             "medrel_static": float(np.median(rel[st])),
-            "delta1_static": float((ratio[st] < 1.25).mean())}
+            "delta1_static": float((ratio[st] < 1.25).mean()),
+            "medrel_dynamic": float(np.median(rel[dy])) if dy.any() else None,
+            "delta1_dynamic": float((ratio[dy] < 1.25).mean()) if dy.any() else None}
 
 
 def mask_metrics(dynamic, gt: SceneGT, thresh: float = 0.5) -> dict:
@@ -418,10 +430,36 @@ def _stage_timer(times: dict):
             p.stop()
 
 
+def prior_config(args, tmp_dir=None):
+    """PriorConfig from the bench's prior options (``--depth-sidecar`` writes into ``tmp_dir``)."""
+    from ..priors import PriorConfig
+
+    cfg = PriorConfig()
+    if getattr(args, "num_points", None):
+        cfg.num_points = int(args.num_points)
+    if getattr(args, "flow_backend", None):
+        cfg.flow_backend = args.flow_backend
+    if getattr(args, "flow_model", None):
+        cfg.flow_backend, cfg.flow_model = "onnx", args.flow_model
+    if getattr(args, "flow_width", None):
+        cfg.flow_model_width = int(args.flow_width)
+    if getattr(args, "depth_model", None):
+        model = Path(args.depth_model).resolve()
+        if args.depth_sidecar:
+            link = Path(tmp_dir) / model.name
+            os.symlink(model, link)
+            link.with_name(model.name + ".json").write_text(args.depth_sidecar)
+            model = link
+        cfg.depth_backend, cfg.depth_model = "onnx", str(model)
+        cfg.depth_output = args.depth_output
+    return cfg
+
+
 def bench_scene(scene_dir, frames: int | None = None, num_points: int | None = None, solve: bool = True,
-                solve_masks: str = "none") -> list[dict]:
-    """All rows for one generated scene folder."""
+                solve_masks: str = "none", cfg=None) -> list[dict]:
+    """All rows for one generated scene folder (``cfg``: PriorConfig, default weight-free)."""
     from ..priors import PriorConfig, compute_priors
+    from ..priors.flow import resolve_flow_backend
 
     load_avg0 = os.getloadavg()[0]
     train, imgs, gt = load_scene(scene_dir, frames)
@@ -434,7 +472,11 @@ def bench_scene(scene_dir, frames: int | None = None, num_points: int | None = N
         m = solve_metrics(train, gt, masks=list(gt.mask.astype(np.float32)) if solve_masks == "gt" else None)
         m.pop("frames", None)
         rows.append({**base, "group": "sfm" if solve_masks == "none" else "sfm(gt masks)", **m})
-    cfg = PriorConfig() if num_points is None else PriorConfig(num_points=int(num_points))
+    if cfg is None:
+        cfg = PriorConfig() if num_points is None else PriorConfig(num_points=int(num_points))
+    fbk, fmodel = resolve_flow_backend(cfg.flow_backend, cfg.flow_model)
+    base["priors"] = ",".join([f"flow={fbk}" + (f":{Path(fmodel).stem}@{cfg.flow_model_width}" if fmodel else ""),
+                               f"depth={cfg.depth_backend}" + (f":{Path(cfg.depth_model).stem}" if cfg.depth_model else "")])
     stages: dict = {}
     t0 = time.perf_counter()
     with _stage_timer(stages):
@@ -470,9 +512,12 @@ def run(args) -> list[dict]:
             scenes = [generate(out, args.preset, args.frames, args.seed)]
             gen_s = time.perf_counter() - t0
             print(f"generated {args.preset} scene in {gen_s:.1f} s: {scenes[0]}", file=sys.stderr)
+        side_tmp = tempfile.TemporaryDirectory(prefix="ms_bench_model_")
+        cfg = prior_config(args, side_tmp.name)
         for sc in scenes:
             rows += bench_scene(sc, frames=args.frames if args.scene else None, num_points=args.num_points,
-                                solve=not args.skip_solve, solve_masks=args.solve_masks)
+                                solve=not args.skip_solve, solve_masks=args.solve_masks, cfg=cfg)
+        side_tmp.cleanup()
     finally:
         if tmp is not None:
             tmp.cleanup()
@@ -486,8 +531,9 @@ def text_rows(rows: list[dict]) -> list[dict]:
     for row in rows:
         clip = f"{row['frames']}f {row['res']}" if "frames" in row else "-"
         for k, v in row.items():
-            if k in ("scene", "group", "frames", "res"):
+            if k in ("scene", "group", "frames", "res", "priors"):
                 continue
-            out.append({"scene": row.get("scene", "-"), "clip": clip, "group": row["group"], "metric": k,
+            label = row.get("scene", "-") + (f" [{row['priors']}]" if "priors" in row else "")
+            out.append({"scene": label, "clip": clip, "group": row["group"], "metric": k,
                         "value": v if isinstance(v, (int, float)) or v is None else str(v)})
     return out

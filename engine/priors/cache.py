@@ -50,6 +50,7 @@ class PriorConfig:
     flow_backend: str = "dis"  # 'auto' (shipped RAFT when usable, else DIS) | 'dis' | 'onnx' (flow_model)
     flow_model: str | None = None
     flow_model_width: int = 240  # working width of a learned flow (shared by tracks and the motion mask)
+    flow_fine: bool = False  # DIS tracks: fuse with the finest-scale flow (fast small objects; ~5x slower)
     depth_backend: str = "sparse"
     depth_model: str | None = None
     depth_path: str | None = None
@@ -141,13 +142,15 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
     # one flow for the tracker and the motion mask when it is learned (DIS stays per consumer: cheap)
     fbk, fmodel = _flow.resolve_flow_backend(cfg.flow_backend, cfg.flow_model)
     fid = [fbk, _file_id(fmodel), cfg.flow_model_width if fbk == "onnx" else None]
-    source = None
+    source = tsource = None
     if fbk == "onnx":
-        source = _flow.FlowSource(frames, "onnx", fmodel, cfg.flow_model_width)
+        source = tsource = _flow.FlowSource(frames, "onnx", fmodel, cfg.flow_model_width)
+    elif cfg.flow_fine:  # tracks only: the motion mask keeps its own plain DIS
+        tsource = _flow.FlowSource(frames, "dis", None, cfg.flow_width, 400, fuse_fine=True)
 
     # tracks
     tp = {"backend": cfg.tracks_backend, "model": _file_id(cfg.tracks_model), "path": _file_id(cfg.tracks_path),
-          "n": cfg.num_points, "w": cfg.flow_width, "fb": cfg.fb_thresh, "flow": fid}
+          "n": cfg.num_points, "w": cfg.flow_width, "fb": cfg.fb_thresh, "flow": fid + [bool(cfg.flow_fine)]}
     keys["tracks"] = k = prior_key("tracks", cid, tp)
     z = _load(cache, "tracks", k)
     if z is not None:
@@ -158,7 +161,7 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             tracks = _pre.load_tracks(cfg.tracks_path, F)
         else:
             tracks = _tracks.track_points(frames, cfg.num_points, cfg.tracks_backend, cfg.tracks_model,
-                                          cfg.flow_width, cfg.fb_thresh, reporter=reporter, source=source)
+                                          cfg.flow_width, cfg.fb_thresh, reporter=reporter, source=tsource)
         _save(cache, "tracks", k, **dataclasses.asdict(tracks))
     log(f"tracks: {tracks.xy.shape[0]} points")
 

@@ -89,6 +89,44 @@ def dis_flow(a, b, preset="medium"):
     return dis.calc(a, b, None)
 
 
+def fb_error(a, b):
+    """Forward-backward error ``|a(p) + b(p + a(p))|`` [h,w] of flows ``a`` (f->g) and ``b`` (g->f)."""
+    import cv2
+
+    h, w = a.shape[:2]
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    e = a + cv2.remap(b, xs + a[..., 0], ys + a[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.hypot(e[..., 0], e[..., 1])
+
+
+def dis_fused(a, b, preset="medium"):
+    """DIS flows both ways between grey ``a`` and ``b``, fused per pixel -> (fwd, bwd) [h,w,2].
+
+    The ``preset`` flow (finest scale 1: patches at half resolution) is exact on the static
+    scene but drags small fast objects along with their surroundings; the same preset at
+    finest scale 0 follows them (1-frame error on moving parts of the large-motion generated
+    scene 1.56 -> 0.50 px median) but is noisier on the background (0.09 -> 0.16 px). Each
+    pixel takes the flow whose forward-backward error (5x5 mean) is lower.
+    """
+    import cv2
+
+    def both(fs):
+        out = []
+        for x, y in ((a, b), (b, a)):
+            d = cv2.DISOpticalFlow_create({"fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+                                           "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+                                           "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST}[preset])
+            if fs is not None:
+                d.setFinestScale(fs)
+            out.append(d.calc(x, y, None))
+        return out
+
+    (cf, cb), (ff, fb) = both(None), both(0)
+    pick_f = cv2.blur(fb_error(ff, fb), (5, 5)) < cv2.blur(fb_error(cf, cb), (5, 5))
+    pick_b = cv2.blur(fb_error(fb, ff), (5, 5)) < cv2.blur(fb_error(cb, cf), (5, 5))
+    return np.where(pick_f[..., None], ff, cf), np.where(pick_b[..., None], fb, cb)
+
+
 def raft_session(model_path):
     """ONNX session of a RAFT-contract model; checks the input names (one clear error otherwise)."""
     from . import onnx_util
@@ -126,13 +164,15 @@ class FlowSource:
     model_path : RAFT-contract ONNX file (``onnx``)
     max_width, min_width : working size (:func:`working_size`)
     preset : DIS preset
+    fuse_fine : DIS only: per-pixel fusion with the finest-scale flow (:func:`dis_fused`)
 
     Attributes
     ----------
     size : (h, w) working size; ``scale`` = w / W; ``gray`` uint8 [F,h,w]
     """
 
-    def __init__(self, frames, backend="dis", model_path=None, max_width=480, min_width=0, preset="medium"):
+    def __init__(self, frames, backend="dis", model_path=None, max_width=480, min_width=0, preset="medium",
+                 fuse_fine=False):
         import cv2
 
         frames = np.asarray(frames)
@@ -152,6 +192,7 @@ class FlowSource:
             self.gray = np.stack([cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in self.rgb])
         self._sess = raft_session(model_path) if backend == "onnx" else None
         self._memo = {}
+        self.fuse_fine = bool(fuse_fine) and backend == "dis"
 
     @property
     def num_frames(self):
@@ -162,7 +203,10 @@ class FlowSource:
         key = (int(f), int(g))
         out = self._memo.get(key)
         if out is None:
-            if self._sess is None:
+            if self.fuse_fine:
+                out, back = dis_fused(self.gray[f], self.gray[g], self.preset)
+                self._memo[key[::-1]] = back
+            elif self._sess is None:
                 out = dis_flow(self.gray[f], self.gray[g], self.preset)
             else:
                 out = raft_flow(self._sess, self.rgb[f], self.rgb[g])

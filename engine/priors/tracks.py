@@ -102,13 +102,16 @@ def _fb(source, f, g, p):
 
 
 def flow_tracks(frames, num_points=2000, max_width=480, fb_thresh=1.0, fb_rel=0.05, preset="medium",
-                reporter=None, min_width=400, source=None, bridge_gaps=(), bridge_min=4, dense_moving=True):
+                reporter=None, min_width=400, source=None, bridge_gaps=(), bridge_min=4, dense_moving=True,
+                retry=None):
     """Chained-flow tracks (see module docstring). Returns :class:`Tracks`.
 
     ``source`` : :class:`~engine.priors.flow.FlowSource` (default: DIS at ``max_width`` /
     ``min_width``). ``bridge_gaps`` : direct multi-frame flows tried, in order, for tracks that
     fail the one-frame forward-backward check (only when at least ``bridge_min`` fail in that
-    step). ``dense_moving`` : re-seed at half the grid cell inside moving regions.
+    step). ``dense_moving`` : re-seed at half the grid cell inside moving regions. ``retry`` : a
+    second :class:`~engine.priors.flow.FlowSource` of the same working size; a point that fails
+    the check with ``source`` is advanced with it instead when it passes there.
     """
     F, H, W, _ = frames.shape
     if source is None:
@@ -133,6 +136,11 @@ def flow_tracks(frames, num_points=2000, max_width=480, fb_thresh=1.0, fb_rel=0.
         p = cur[idx]
         q, err, mag = _fb(source, f, f + 1, p)
         ok = inside(q) & (err <= fb_thresh + fb_rel * mag)
+        if retry is not None and (~ok).any():
+            bad = np.flatnonzero(~ok)
+            q2, e2, m2 = _fb(retry, f, f + 1, p[bad])
+            ok2 = inside(q2) & (e2 <= fb_thresh + fb_rel * m2)
+            q[bad[ok2]], err[bad[ok2]], ok[bad[ok2]] = q2[ok2], e2[ok2], True
         cur[idx] = q
         alive[idx[~ok]] = False
         conf[idx] = np.where(ok, np.exp(-err / max(fb_thresh, 1e-6)), 0.0)

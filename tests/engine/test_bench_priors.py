@@ -7,6 +7,7 @@ the rows on the real priors have the documented keys and sane values. No timing 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -55,6 +56,27 @@ def test_perfect_inputs_score_perfectly(loaded):
     assert t["pairs"] > 100 and t["tracks_dynamic"] > 0
     assert t["epe_median"] < 0.01 and t["epe_median_dynamic"] < 0.05 and t["within_2px"] > 0.99
     assert t["false_visible"] == 0.0
+    # moving parts: GT-visible pairs are covered (the "tracks" above use a 1 % depth test for
+    # visibility, the bench's GT 2 %: the few pairs in between are not claimed), no false visibility
+    assert t["coverage_dynamic"] > 0.9 and t["false_visible_dynamic"] == 0.0 and m["f1"] == 1.0
+    assert t["tracked8_dynamic"] is None or t["tracked8_dynamic"] > 0.9
+    # a track that stops after its first frame covers nothing later
+    cut = vis[sel].copy(); cut[:, 1:] = False
+    t0 = bench.track_metrics(Tracks(uv[sel].astype(np.float32), cut, cut.astype(np.float32), np.zeros(sel.sum(), int)), gt)
+    assert t0["coverage_dynamic"] == 0.0
+
+
+def test_prior_options_build_the_config(tmp_path):
+    model = tmp_path / "m" / "depth.onnx"
+    model.parent.mkdir(); model.write_bytes(b"x")
+    args = build_parser().parse_args(["priors", "--flow-model", "raft.onnx", "--flow-width", "200",
+                                      "--depth-model", str(model), "--depth-output", "depth",
+                                      "--depth-sidecar", '{"size_multiple": 64}', "--num-points", "500"])
+    cfg = bench.prior_config(args, tmp_path)
+    assert (cfg.flow_backend, cfg.flow_model, cfg.flow_model_width, cfg.num_points) == ("onnx", "raft.onnx", 200, 500)
+    assert cfg.depth_backend == "onnx" and cfg.depth_output == "depth"
+    assert Path(cfg.depth_model).parent == tmp_path and Path(cfg.depth_model).resolve() == model.resolve()
+    assert (tmp_path / "depth.onnx.json").read_text() == '{"size_multiple": 64}'
 
 
 def test_bench_rows(scene):
