@@ -102,6 +102,18 @@ def load_state(path: str | os.PathLike) -> dict:
     return state
 
 
+def without_groups(opt_state: dict, names: tuple[str, ...]) -> dict:
+    """An optimiser ``state_dict`` without the parameter groups called ``names`` (and their
+    moments): checkpoints from before ``node_log_radii`` became a buffer (#19) had a group
+    for it."""
+    groups = opt_state["param_groups"]
+    drop = {i for g in groups if g.get("name") in names for i in g["params"]}
+    if not drop:
+        return opt_state
+    return {"state": {i: v for i, v in opt_state["state"].items() if i not in drop},
+            "param_groups": [g for g in groups if g.get("name") not in names]}
+
+
 def discard(path: str | os.PathLike) -> None:
     """Remove a finished run's checkpoint (and its folder when that is left empty)."""
     path = Path(path)

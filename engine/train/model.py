@@ -123,11 +123,14 @@ class DynamicScene(nn.Module):
     ---------------------------------
     means [G, 3], quats [G, 4] (wxyz, unnormalised), log_scales [G, 3],
     opacity_logits [G], sh_dc [G, 1, 3], sh_rest [G, M-1, 3];
-    node_log_radii [N]; spline/per_frame: pos_keys [N, K, 3], rot_keys [N, K, 4].
+    spline/per_frame: pos_keys [N, K, 3], rot_keys [N, K, 4].
 
     Buffers
     -------
-    node_centers [N, 3] canonical node centres ``c_i``; key_times [K];
+    node_centers [N, 3] canonical node centres ``c_i``; node_log_radii [N] (the RBF radius
+    ``ρ_i`` of the binding weights, from the initialiser's node spacing: a constant, since the
+    weights are recomputed under no_grad at each rebind, a learned radius would get no
+    gradient); key_times [K];
     bind_idx [G, K_b], bind_w [G, K_b]; graph_idx [N, k]; node_p_dyn [N]; node_fg [N];
     node_dyn [N] bool, gauss_dyn [G] bool: the static / dynamic split
     (``engine/train/split.py``; all True = one class, the model before the split).
@@ -153,7 +156,7 @@ class DynamicScene(nn.Module):
         self.opacity_logits = nn.Parameter(inverse_sigmoid(opacities).clone())
         self.sh_dc = nn.Parameter(((colors - 0.5) / SH_C0).view(g, 1, 3).clone())
         self.sh_rest = nn.Parameter(torch.zeros(g, m - 1, 3, device=dev, dtype=dt))
-        self.node_log_radii = nn.Parameter(torch.log(node_radii.clamp_min(1e-6)).clone())
+        self.register_buffer("node_log_radii", torch.log(node_radii.clamp_min(1e-6)).clone())
         self.register_buffer("node_centers", node_centers.clone())
         self.register_buffer("key_times", key_times.clone())
         self.register_buffer("node_p_dyn", node_p_dyn.clone() if node_p_dyn is not None else torch.zeros(n, device=dev))

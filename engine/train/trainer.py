@@ -57,7 +57,6 @@ def make_optimizer(model: DynamicScene, cfg: TrainConfig) -> torch.optim.Adam:
         {"name": "opacity_logits", "params": [model.opacity_logits], "lr": cfg.lr_opacity},
         {"name": "sh_dc", "params": [model.sh_dc], "lr": cfg.lr_sh},
         {"name": "sh_rest", "params": [model.sh_rest], "lr": cfg.lr_sh / 20},
-        {"name": "node_log_radii", "params": [model.node_log_radii], "lr": 1e-3},
     ]
     if model.mlp is not None:
         groups.append({"name": "mlp", "params": list(model.mlp.parameters()), "lr": cfg.lr_mlp})
@@ -70,7 +69,7 @@ def make_optimizer(model: DynamicScene, cfg: TrainConfig) -> torch.optim.Adam:
     return torch.optim.Adam(groups, eps=1e-15, fused=fused or None)
 
 
-NODE_PARAMS = ("node_log_radii", "pos_keys", "rot_keys")
+NODE_PARAMS = ("pos_keys", "rot_keys")  # node_log_radii is a buffer (DynamicScene), edited beside them
 
 
 def _edit_gaussians(model: DynamicScene, opt: torch.optim.Adam, keep: torch.Tensor | None,
@@ -514,6 +513,8 @@ class Trainer:
                     ref_q = torch.cat([ref_q, extra["rot_keys"]])
                 self.static_ref = (ref_p.contiguous(), ref_q.contiguous())
             _edit_gaussians(m, self.opt, keep, extra, names=NODE_PARAMS)
+            radii = m.node_log_radii[keep]
+            m.node_log_radii = (radii if extra is None else torch.cat([radii, extra["node_log_radii"]])).contiguous()
             m.node_centers = new_centers.contiguous()
             m.node_p_dyn = new_pdyn.contiguous()
             m.node_fg = new_fg.contiguous()
@@ -625,7 +626,7 @@ class Trainer:
         model.load_state_dict({k: v.to(dev) for k, v in sd.items()})
         self.model = model
         self.opt = make_optimizer(model, self.cfg)
-        self.opt.load_state_dict(state["optimizer"])
+        self.opt.load_state_dict(CK.without_groups(state["optimizer"], ("node_log_radii",)))
         self.gen.set_state(state["gen"])
         torch.set_rng_state(state["torch_rng"])
         self.step = int(state["step"])

@@ -1,0 +1,140 @@
+"""Direct tests of the track and mask terms, and of the training step's gradient flow: every
+trainable parameter of the model gets a gradient in one step, or is not trainable (#19: the
+RBF radius was an optimised parameter that never received one)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from engine.train import losses as L
+from engine.train.config import preset_config
+from engine.train.trainer import Trainer
+
+from .synthetic_training import make_nodes, make_scene
+
+
+# ---------------------------------------------------------------------- track_loss
+def test_track_loss_is_zero_on_the_tracks_and_huber_beyond():
+    target = torch.tensor([[10.0, 20.0], [30.0, 5.0]])
+    vis = torch.tensor([True, True])
+    assert float(L.track_loss(target.clone(), target, vis, 100.0)) == 0.0
+    # 1 px off in x on one point at scale 100: d = 0.01 < delta 0.05 -> 0.5 d^2, mean over 4 numbers
+    off = target.clone()
+    off[0, 0] += 1.0
+    assert float(L.track_loss(off, target, vis, 100.0)) == pytest.approx(0.5 * 0.01 ** 2 / 4, rel=1e-5)
+    # 50 px off at scale 10: d = 5 > delta -> linear, delta (|d| - delta / 2)
+    far = target.clone()
+    far[1, 1] += 50.0
+    assert float(L.track_loss(far, target, vis, 10.0)) == pytest.approx(0.05 * (5.0 - 0.025) / 4, rel=1e-5)
+
+
+def test_track_loss_ignores_invisible_points_and_is_resolution_free():
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(50, 2, generator=g) * 100
+    proj = (target + torch.randn(50, 2, generator=g)).requires_grad_(True)
+    vis = torch.rand(50, generator=g) > 0.3
+    loss = L.track_loss(proj, target, vis, 64.0)
+    base = loss.detach()
+    wild = proj.detach().clone()
+    wild[~vis] += 1e4  # what invisible points do cannot matter
+    assert float(L.track_loss(wild, target, vis, 64.0)) == pytest.approx(float(base), rel=1e-6)
+    loss.backward()
+    assert torch.count_nonzero(proj.grad[~vis]) == 0 and torch.count_nonzero(proj.grad[vis]) > 0
+    # twice the resolution, twice the scale: the same loss
+    assert float(L.track_loss(2 * proj.detach(), 2 * target, vis, 128.0)) == pytest.approx(float(base), rel=1e-5)
+    # nothing visible: 0, still connected to the graph (backward runs, zero gradient)
+    none = torch.zeros(50, dtype=torch.bool)
+    p = proj.detach().clone().requires_grad_(True)
+    z = L.track_loss(p, target, none, 64.0)
+    z.backward()
+    assert float(z.detach()) == 0.0 and torch.count_nonzero(p.grad) == 0
+
+
+# ---------------------------------------------------------------------- mask_loss
+def test_mask_loss_is_the_binary_cross_entropy_to_the_prior():
+    prior = torch.tensor([[1.0, 0.0], [1.0, 0.0]])
+    alpha = torch.ones(2, 2, 1)
+    half = torch.full((2, 2, 1), 0.5)
+    assert float(L.mask_loss(alpha, half, prior)) == pytest.approx(math.log(2), rel=1e-6)
+    right = prior[..., None].clone()
+    wrong = 1 - right
+    assert float(L.mask_loss(alpha, right, prior)) < 1e-3
+    # a confidently wrong mask costs -ln(1e-4) per pixel (clamped, never inf)
+    assert float(L.mask_loss(alpha, wrong, prior)) == pytest.approx(-math.log(1e-4), rel=1e-3)
+
+
+def test_mask_loss_pulls_the_dynamic_render_toward_the_prior():
+    prior = torch.tensor([[1.0, 0.0, 0.7]])
+    dyn = torch.full((1, 3, 1), 0.4, requires_grad=True)
+    L.mask_loss(torch.ones(1, 3, 1), dyn, prior).backward()
+    g = dyn.grad[..., 0]
+    # descent raises it where the prior says moving, lowers it where static, and moves it
+    # toward a soft prior value
+    assert g[0, 0] < 0 and g[0, 1] > 0 and g[0, 2] < 0
+    # the total alpha does not enter (the term is on the dynamic channel only)
+    a = torch.rand(1, 3, 1, requires_grad=True)
+    L.mask_loss(a, dyn, prior).backward()
+    assert a.grad is None
+
+
+# ---------------------------------------------------------------------- gradient flow
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(frames=8, width=48, height=36)
+
+
+@pytest.mark.parametrize("motion,split", [("spline", False), ("spline", True), ("mlp", False)])
+def test_every_trainable_parameter_gets_a_gradient_in_a_step(tmp_path, scene, motion, split):
+    """One training step with every term on (mask step included): each parameter the
+    optimiser updates has a non-zero gradient, and every ``requires_grad`` parameter of the
+    model is in the optimiser. The RBF radius is a buffer, not a parameter."""
+    data, truth = scene
+    cfg = preset_config("preview", steps=10, gaussians_per_frame=200, init_keyframes=2, num_nodes=25,
+                        densify_until=0, checkpoint_every=0, warmup_static_steps=0, motion=motion, split=split,
+                        loss={"mask": 0.1, "track": 0.05, "depth": 0.05, "arap": 1.0, "static": 1.0,
+                              "velocity": 1e-3, "acceleration": 1e-2})
+    trainer = Trainer(data, make_nodes(truth), cfg, tmp_path / "run")
+    m = trainer.model
+    with torch.no_grad():  # initial Gaussians are round, whose rotation gradient is exactly 0
+        m.log_scales.add_(0.3 * torch.randn(m.log_scales.shape, generator=torch.Generator().manual_seed(1)))
+    f = int(data.train_idx[0])
+    trainer.step = 4  # a mask step (every 4th), past the warm-up
+    loss, metrics, _ = trainer._loss(f)
+    assert {"rgb", "mask", "depth", "arap", "static"} <= set(metrics)
+    if motion != "mlp":
+        assert "track" in metrics and "velocity" in metrics
+    trainer.opt.zero_grad(set_to_none=True)
+    loss.backward()
+    in_opt = {id(p): g["name"] for g in trainer.opt.param_groups for p in g["params"]}
+    for name, p in m.named_parameters():
+        if p.requires_grad:
+            assert id(p) in in_opt, f"{name} is trainable but not optimised"
+    for group in trainer.opt.param_groups:
+        for p in group["params"]:
+            assert p.grad is not None, f"{group['name']} gets no gradient"
+        # (the MLP's zero-initialised head leaves its trunk a zero first gradient: per group)
+        assert any(torch.count_nonzero(p.grad) > 0 for p in group["params"]), f"{group['name']}: zero gradient"
+    assert "node_log_radii" not in dict(m.named_parameters())
+    assert "node_log_radii" in dict(m.named_buffers())
+
+
+def test_a_checkpoint_optimiser_with_the_old_radius_group_still_loads():
+    """Checkpoints from before the radius became a buffer have an Adam group for it; resume
+    drops that group (and its moments) and loads the rest unchanged."""
+    from engine.train.checkpoint import without_groups
+
+    a, r, b = (torch.nn.Parameter(torch.randn(3)) for _ in range(3))
+    old = torch.optim.Adam([{"name": "means", "params": [a]}, {"name": "node_log_radii", "params": [r]},
+                            {"name": "pos_keys", "params": [b]}])
+    (a.sum() + b.sum()).backward()
+    old.step()
+    state = old.state_dict()
+    new = torch.optim.Adam([{"name": "means", "params": [a]}, {"name": "pos_keys", "params": [b]}])
+    with pytest.raises(ValueError):
+        new.load_state_dict(state)
+    new.load_state_dict(without_groups(state, ("node_log_radii",)))
+    assert torch.equal(new.state[b]["exp_avg"], old.state[b]["exp_avg"])
+    assert [g["name"] for g in new.param_groups] == ["means", "pos_keys"]
