@@ -152,8 +152,7 @@ def sfm_cameras(rec, names: list[str]) -> dict:
     Returns
     -------
     dict with ``registered [F] bool``, ``w2c [F,4,4]`` (identity where not registered), ``K [3,3]``,
-    ``dist [k]`` or None, ``points [P,3]``, ``colors [P,3] uint8``, ``mean_reproj_error`` (px),
-    ``obs_per_image [F]`` (observed sparse points per frame, 0 where not registered).
+    ``dist [k]`` or None, ``points [P,3]``, ``colors [P,3] uint8``, ``mean_reproj_error`` (px).
     """
     try:
         rnames, K, w2c_r, dist_r, _ = reconstruction_cameras(rec)
@@ -165,15 +164,11 @@ def sfm_cameras(rec, names: list[str]) -> dict:
     registered[pos] = True
     w2c = np.tile(np.eye(4), (F, 1, 1))
     w2c[pos] = w2c_r
-    obs = np.zeros(F, np.int64)
-    for im in rec.images.values():
-        if im.name in names and im.has_pose:
-            obs[names.index(im.name)] = int(im.num_points3D)
     pts = rec.points3D
     return {"registered": registered, "w2c": w2c, "K": K[0], "dist": None if dist_r is None else dist_r[0],
             "points": np.array([p.xyz for p in pts.values()], dtype=np.float64).reshape(-1, 3),
             "colors": np.array([p.color for p in pts.values()], dtype=np.uint8).reshape(-1, 3),
-            "mean_reproj_error": float(rec.compute_mean_reprojection_error()), "obs_per_image": obs}
+            "mean_reproj_error": float(rec.compute_mean_reprojection_error())}
 
 
 def _seed_all(opts, seed: int, depth: int = 0) -> None:
