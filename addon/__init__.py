@@ -3,7 +3,7 @@
 
 import bpy
 
-from . import build, fcurves, properties, render_setup, rig  # noqa: F401  (scene builders)
+from . import build, fcurves, preview, properties, render_setup, rig  # noqa: F401  (scene builders)
 from . import bridge, env_setup, jobs, preferences  # noqa: F401  (engine bridge)
 
 # Classes registered by this package, in dependency order. Modules of this package

@@ -1,0 +1,228 @@
+# SPDX-License-Identifier: GPL-3.0-or-later
+"""The Gaussian preview: a Geometry Nodes modifier after the rig's Armature modifier, and
+its materials (see :mod:`.build` for the mesh and attributes it reads).
+
+``POINTS``: a fresh point cloud (Points node + Sample Index of the deformed positions and
+``ms_*`` attributes; Mesh to Points would copy the rig's N vertex groups onto every
+point), radius = mean σ × "Radius Scale". ``ELLIPSOIDS`` (for Cycles): Instance on Points
+of an 80-face ico-sphere enclosing 3σ, scaled by σ per axis and rotated by Axes to
+Rotation of the two deformed auxiliary vertices. The ellipsoid material's alpha is
+``opacity · exp(−½ d²)`` with ``d`` the instance-space distance from the centre to the
+camera ray (σ units), cut at 3σ; back faces are transparent; colour is emitted.
+"""
+
+from __future__ import annotations
+
+import bpy
+
+PREVIEW_MODES = ("POINTS", "ELLIPSOIDS")
+GN_MODIFIER = "MotionSplatsPreview"
+GN_TREE = {"POINTS": "MotionSplatsPoints", "ELLIPSOIDS": "MotionSplatsEllipsoids"}
+AUX_AXES = 2  # auxiliary vertices per Gaussian in ELLIPSOIDS builds (local x and y axes)
+
+
+def _socket(sockets, name: str, index: int = 0):
+    """The ``index``-th enabled socket called ``name`` (dynamic nodes hide unused ones)."""
+    found = [s for s in sockets if s.name == name and getattr(s, "enabled", True)]
+    return found[index]
+
+
+def _named_attr(nodes, name: str, dtype: str):
+    n = nodes.new("GeometryNodeInputNamedAttribute")
+    n.data_type = dtype
+    n.inputs["Name"].default_value = name
+    return _socket(n.outputs, "Attribute")
+
+
+class _Tree:
+    """Small builder for the preview node groups."""
+
+    def __init__(self, name: str, inputs=()):
+        self.tree = tree = bpy.data.node_groups.new(name, "GeometryNodeTree")
+        tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+        for sock_name, default in inputs:
+            s = tree.interface.new_socket(sock_name, in_out="INPUT", socket_type="NodeSocketFloat")
+            s.default_value, s.min_value = default, 0.0
+        tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+        self.N, self.L = tree.nodes, tree.links
+        self.gin, self.gout = self.N.new("NodeGroupInput"), self.N.new("NodeGroupOutput")
+        self.index = self.N.new("GeometryNodeInputIndex").outputs["Index"]
+        self.position = self.N.new("GeometryNodeInputPosition").outputs["Position"]
+
+    def node(self, idname, **props):
+        n = self.N.new(idname)
+        for k, v in props.items():
+            setattr(n, k, v)
+        return n
+
+    def link(self, a, b):
+        if isinstance(a, (int, float, tuple)):
+            b.default_value = a
+        else:
+            self.L.new(a, b)
+
+    def math(self, op, a, b, kind="ShaderNodeMath"):
+        n = self.node(kind, operation=op)
+        self.link(a, n.inputs[0])
+        self.link(b, n.inputs[1])
+        scalar = kind == "ShaderNodeMath" or op in ("DOT_PRODUCT", "LENGTH", "DISTANCE")
+        return n.outputs["Value"] if scalar else n.outputs["Vector"]
+
+    def sample(self, geo, value, dtype, index):
+        """``value`` (a field on the Gaussian mesh) read at ``index`` of the consuming context."""
+        n = self.node("GeometryNodeSampleIndex", data_type=dtype, domain="POINT")
+        self.link(geo, n.inputs["Geometry"])
+        self.link(value, _socket(n.inputs, "Value"))
+        self.link(index, n.inputs["Index"])
+        return _socket(n.outputs, "Value")
+
+    def store(self, geo, name, dtype, value):
+        n = self.node("GeometryNodeStoreNamedAttribute", data_type=dtype, domain="POINT")
+        self.link(geo, n.inputs["Geometry"])
+        n.inputs["Name"].default_value = name
+        self.link(value, _socket(n.inputs, "Value"))
+        return n.outputs["Geometry"]
+
+    def splat_points(self, aux_per_gaussian: int):
+        """A new point cloud with one point per Gaussian at its (deformed) position,
+        carrying ``ms_color``/``ms_opacity``, plus the sampled ``ms_scale`` field.
+
+        The points are made with the Points node and Sample Index instead of Mesh to
+        Points: the rig's ~N vertex groups would otherwise be copied onto every point
+        (or have to be removed, which costs seconds per frame with 2000 groups).
+        """
+        geo = self.gin.outputs["Geometry"]
+        size = self.node("GeometryNodeAttributeDomainSize", component="MESH")
+        self.link(geo, size.inputs["Geometry"])
+        count = self.math("DIVIDE", size.outputs["Point Count"], float(1 + aux_per_gaussian))
+        pts = self.node("GeometryNodePoints")
+        self.link(count, pts.inputs["Count"])
+        self.link(self.sample(geo, self.position, "FLOAT_VECTOR", self.index), pts.inputs["Position"])
+        scale = self.sample(geo, _named_attr(self.N, "ms_scale", "FLOAT_VECTOR"), "FLOAT_VECTOR", self.index)
+        out = pts.outputs["Points"]
+        out = self.store(out, "ms_color", "FLOAT_COLOR",
+                         self.sample(geo, _named_attr(self.N, "ms_color", "FLOAT_COLOR"), "FLOAT_COLOR", self.index))
+        out = self.store(out, "ms_opacity", "FLOAT",
+                         self.sample(geo, _named_attr(self.N, "ms_opacity", "FLOAT"), "FLOAT", self.index))
+        return geo, pts, out, scale, count
+
+    def finish(self, geo, material):
+        setmat = self.node("GeometryNodeSetMaterial")
+        setmat.inputs["Material"].default_value = material
+        self.link(geo, setmat.inputs["Geometry"])
+        self.link(setmat.outputs["Geometry"], self.gout.inputs["Geometry"])
+        return self.tree
+
+
+def _points_tree(material):
+    t = _Tree(GN_TREE["POINTS"], inputs=(("Radius Scale", 1.0),))
+    _, pts, out, scale, _ = t.splat_points(0)
+    mean = t.math("DOT_PRODUCT", scale, (1 / 3, 1 / 3, 1 / 3), kind="ShaderNodeVectorMath")
+    t.link(t.math("MULTIPLY", mean, t.gin.outputs["Radius Scale"]), pts.inputs["Radius"])
+    return t.finish(out, material)
+
+
+#: Ico-sphere radius in σ units: subdivision 2 (80 faces) has an inradius of ~0.94 of its
+#: circumradius, so 3.3 encloses the 3σ sphere the shader cuts the Gaussian at.
+ICO_RADIUS, ICO_SUBDIVISIONS, CUTOFF_SIGMA = 3.3, 2, 3.0
+
+
+def _ellipsoid_tree(material, subdivisions: int = ICO_SUBDIVISIONS):
+    t = _Tree(GN_TREE["ELLIPSOIDS"])
+    geo, _, out, scale, count = t.splat_points(AUX_AXES)
+    axes = []
+    first_aux = t.math("ADD", count, t.math("MULTIPLY", t.index, float(AUX_AXES)))  # G + AUX·i
+    for k in range(AUX_AXES):  # the deformed local x and y axes define the rotation
+        aux = t.sample(geo, t.position, "FLOAT_VECTOR", t.math("ADD", first_aux, float(k)))
+        axes.append(t.math("SUBTRACT", aux, t.position, kind="ShaderNodeVectorMath"))
+    a2r = t.node("FunctionNodeAxesToRotation", primary_axis="X", secondary_axis="Y")
+    t.link(axes[0], a2r.inputs["Primary Axis"])
+    t.link(axes[1], a2r.inputs["Secondary Axis"])
+    ico = t.node("GeometryNodeMeshIcoSphere")
+    ico.inputs["Radius"].default_value = ICO_RADIUS  # instance space is in σ units
+    ico.inputs["Subdivisions"].default_value = subdivisions
+    iop = t.node("GeometryNodeInstanceOnPoints")
+    t.link(out, iop.inputs["Points"])
+    t.link(ico.outputs["Mesh"], iop.inputs["Instance"])
+    t.link(a2r.outputs["Rotation"], iop.inputs["Rotation"])
+    t.link(scale, iop.inputs["Scale"])
+    return t.finish(iop.outputs["Instances"], material)
+
+
+def _material(name: str, ellipsoid: bool):
+    mat = bpy.data.materials.new(name)
+    if bpy.app.version < (5, 0, 0) and not mat.use_nodes:  # always node-based from 5.0
+        mat.use_nodes = True
+    if hasattr(mat, "surface_render_method"):
+        mat.surface_render_method = "DITHERED"
+    nt = mat.node_tree
+    N, L = nt.nodes, nt.links
+    N.clear()
+    kind = "INSTANCER" if ellipsoid else "GEOMETRY"
+    col = N.new("ShaderNodeAttribute")
+    col.attribute_type, col.attribute_name = kind, "ms_color"
+    op = N.new("ShaderNodeAttribute")
+    op.attribute_type, op.attribute_name = kind, "ms_opacity"
+    emit = N.new("ShaderNodeEmission")
+    L.new(col.outputs["Color"], emit.inputs["Color"])
+    emit.inputs["Strength"].default_value = 1.0
+    transp = N.new("ShaderNodeBsdfTransparent")
+    mix = N.new("ShaderNodeMixShader")
+    out = N.new("ShaderNodeOutputMaterial")
+    L.new(transp.outputs[0], mix.inputs[1])
+    L.new(emit.outputs[0], mix.inputs[2])
+    L.new(mix.outputs[0], out.inputs["Surface"])
+
+    def math(op_name, a, b=None, value=None):
+        n = N.new("ShaderNodeMath")
+        n.operation = op_name
+        for i, v in enumerate((a, b)):
+            if v is None:
+                continue
+            if isinstance(v, (int, float)):
+                n.inputs[i].default_value = v
+            else:
+                L.new(v, n.inputs[i])
+        return n.outputs[0]
+
+    def vdot(a, b):
+        n = N.new("ShaderNodeVectorMath")
+        n.operation = "DOT_PRODUCT"
+        L.new(a, n.inputs[0])
+        L.new(b, n.inputs[1])
+        return n.outputs["Value"]
+
+    alpha = op.outputs["Fac"]
+    if ellipsoid:
+        tc = N.new("ShaderNodeTexCoord")
+        geom = N.new("ShaderNodeNewGeometry")
+        vt = N.new("ShaderNodeVectorTransform")
+        vt.vector_type, vt.convert_from, vt.convert_to = "VECTOR", "WORLD", "OBJECT"
+        L.new(geom.outputs["Incoming"], vt.inputs["Vector"])
+        p, v = tc.outputs["Object"], vt.outputs["Vector"]
+        pp, pv, vv = vdot(p, p), vdot(p, v), vdot(v, v)
+        d2 = math("SUBTRACT", pp, math("DIVIDE", math("MULTIPLY", pv, pv), math("MAXIMUM", vv, 1e-12)))
+        g = math("EXPONENT", math("MULTIPLY", math("MAXIMUM", d2, 0.0), -0.5))
+        alpha = math("MULTIPLY", alpha, g)
+        alpha = math("MULTIPLY", alpha, math("LESS_THAN", d2, CUTOFF_SIGMA ** 2))  # 3σ cut
+        alpha = math("MULTIPLY", alpha, math("SUBTRACT", 1.0, geom.outputs["Backfacing"]))
+    L.new(math("MINIMUM", alpha, 0.99), mix.inputs["Fac"])
+    return mat
+
+
+def add_preview_modifier(mesh_obj, preview: str = "POINTS"):
+    """(Re)create the Geometry Nodes preview modifier (after the Armature modifier)."""
+    if preview not in PREVIEW_MODES:
+        raise ValueError(f"preview must be one of {PREVIEW_MODES}, not {preview!r}")
+    old = mesh_obj.modifiers.get(GN_MODIFIER)
+    if old is not None:
+        mesh_obj.modifiers.remove(old)
+    ell = preview == "ELLIPSOIDS"
+    mat = _material("MotionSplatsEllipsoid" if ell else "MotionSplatsPoint", ell)
+    tree = _ellipsoid_tree(mat) if ell else _points_tree(mat)
+    if mat.name not in [m.name for m in mesh_obj.data.materials if m]:
+        mesh_obj.data.materials.append(mat)
+    mod = mesh_obj.modifiers.new(GN_MODIFIER, "NODES")
+    mod.node_group = tree
+    mesh_obj["ms_preview"] = preview
+    return mod
