@@ -12,6 +12,8 @@ import html
 
 import numpy as np
 
+from .geometry.poses import camera_centres
+
 ROWS = (("model", "model"), ("mapper", "SfM mapper"), ("reason", "why"), ("num_registered", "frames registered"),
         ("num_frames", "frames solved"), ("mean_reproj_error", "mean reprojection / transfer error (px)"),
         ("num_points", "sparse points"), ("parallax_px", "parallax at long gaps (px, solve resolution)"),
@@ -28,7 +30,7 @@ def camera_path_svg(w2c: np.ndarray, times: np.ndarray, size: int = 360) -> str:
     """
     w2c = np.asarray(w2c, np.float64)
     R = w2c[:, :3, :3]
-    C = -np.einsum("fji,fj->fi", R, w2c[:, :3, 3])
+    C = camera_centres(w2c)
     fwd = R[:, 2, :]  # camera +z in world coordinates
     mu = C.mean(0)
     spread = np.linalg.norm(C - mu, axis=1).max()

@@ -55,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..geometry.poses import camera_centres, interpolate_poses, umeyama_similarity
 from . import solve_select as sel
 from .clip import Clip, scene_bounds
 from .solve_colmap import extract_and_match, global_sfm, incremental_sfm, largest, sfm_cameras, write_inputs
@@ -67,74 +68,6 @@ log = logging.getLogger(__name__)
 
 NO_CAMERAS_FIX = ("Supply cameras (export them from Blender or use a dataset with poses), or use footage where "
                   "the camera moves (translates) around a textured, mostly static scene.")
-
-
-def umeyama_similarity(src: np.ndarray, dst: np.ndarray, with_scale: bool = True):
-    """Least-squares similarity ``dst ≈ s · R · src + t`` (Umeyama 1991).
-
-    Parameters
-    ----------
-    src, dst : ndarray [N,3]
-        Corresponding points, ``N ≥ 3`` (not all collinear for a unique rotation).
-    with_scale : bool
-        Estimate ``s`` (else ``s = 1``).
-
-    Returns
-    -------
-    s : float
-    R : ndarray [3,3]  proper rotation (det +1)
-    t : ndarray [3]
-    """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
-        raise ValueError(f"need matching [N>=3,3] arrays, got {src.shape} and {dst.shape}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / len(src)
-    U, D, Vt = np.linalg.svd(cov)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1
-    R = U @ S @ Vt
-    var_s = (xs ** 2).sum() / len(src)
-    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale and var_s > 0 else 1.0
-    t = mu_d - s * R @ mu_s
-    return s, R, t
-
-
-def interpolate_poses(w2c: np.ndarray, registered: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """Fill unregistered poses: slerp rotation + lerp centre between registered neighbours in time.
-
-    Parameters
-    ----------
-    w2c : ndarray [F,4,4]  (rows of unregistered frames are ignored)
-    registered : ndarray [F] bool
-    times : ndarray [F]
-
-    Returns
-    -------
-    ndarray [F,4,4]
-    """
-    from scipy.spatial.transform import Rotation, Slerp
-
-    out = w2c.copy()
-    reg = np.flatnonzero(registered)
-    R = w2c[reg, :3, :3]
-    C = -np.einsum("fji,fj->fi", R, w2c[reg, :3, 3])
-    tr = times[reg]
-    q = np.clip(times, tr[0], tr[-1])
-    if len(reg) == 1:
-        Ri = np.repeat(R, len(times), 0)
-        Ci = np.repeat(C, len(times), 0)
-    else:
-        Ri = Slerp(tr, Rotation.from_matrix(R))(q).as_matrix()
-        Ci = np.stack([np.interp(q, tr, C[:, k]) for k in range(3)], axis=1)
-    miss = ~registered
-    out[miss, :3, :3] = Ri[miss]
-    out[miss, :3, 3] = -np.einsum("fij,fj->fi", Ri[miss], Ci[miss])
-    out[miss, 3] = [0, 0, 0, 1.0]
-    return out
 
 
 def solve_cameras(clip: Clip, masks=None, *, max_size: int = 320, max_frames: int | None = None,
@@ -333,7 +266,7 @@ def _sfm_clip(clip, cams, mapper, s, size, why, rejected, evidence, seed, rep) -
     Kf[:, 1, :] *= clip.height / h
     dist = None if cams["dist"] is None else np.tile(cams["dist"], (F, 1))
     xyz = cams["points"]
-    c, sc = scene_bounds(-np.einsum("fji,fj->fi", w2c[:, :3, :3], w2c[:, :3, 3]), xyz)
+    c, sc = scene_bounds(camera_centres(w2c), xyz)
     info = {"model": "sfm", "mapper": mapper, "registered": registered, "num_registered": int(registered.sum()),
             "mean_reproj_error": cams["mean_reproj_error"], "num_points": int(len(xyz)), "solve_scale": s,
             "rejected": list(rejected), "seed": seed, **_evidence_fields(evidence)}

@@ -11,6 +11,7 @@ import dataclasses
 
 import numpy as np
 
+from ..geometry.poses import kabsch_rotation
 from .clip import Clip
 from .solve_twoview import INLIER_PX, homography_residual, pair_geometry
 
@@ -26,12 +27,6 @@ def default_K(width: int, height: int, fov_deg: float | None = None) -> np.ndarr
         raise InputError(f"field of view {fov} degrees is out of range.", fix="Give --fov between 1 and 179 degrees.")
     f = 0.5 * max(width, height) / np.tan(np.radians(fov) / 2)
     return np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
-
-
-def _kabsch_rotation(u, v):
-    """Rotation ``R`` minimising ``Σ |v − R u|²`` for unit rays ``u, v [N,3]``."""
-    U, _, Vt = np.linalg.svd(v.T @ u)
-    return U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
 def fixed_centre_cameras(clip: Clip, small, pairs=None, *, fov_deg: float | None = None, solve_scale: float = 1.0,
@@ -84,7 +79,7 @@ def fixed_centre_cameras(clip: Clip, small, pairs=None, *, fov_deg: float | None
         inl = mh[:, 0] > 0 if mh is not None else np.zeros(len(p), bool)
         if inl.sum() < min_inliers:
             continue
-        Rr = _kabsch_rotation(_rays(p[inl], Ki), _rays(q[inl], Ki))
+        Rr = kabsch_rotation(_rays(p[inl], Ki), _rays(q[inl], Ki))
         R[f] = Rr @ R[f - 1]
         registered[f] = True
         errs.append(homography_residual(Ks @ Rr @ Ki, p[inl], q[inl]) / solve_scale)

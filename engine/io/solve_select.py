@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry.poses import camera_centres
+
 MIN_PARALLAX_PX = 0.1  # px at solve resolution (long side 320): below it no gap shows translation
 FLOOR_RATIO = 1.25     # long-gap parallax must exceed the gap-1 floor (noise, blur) by this factor
 MAX_REPROJ_PX = 1.5    # mean SfM reprojection error (px at solve resolution) of a healthy bundle adjustment
@@ -64,7 +66,7 @@ def sfm_problems(cams: dict, need: int, max_reproj_px: float = MAX_REPROJ_PX, mi
     if len(cams["points"]) < min_points:
         out.append(f"only {len(cams['points'])} sparse points survived (need {min_points})")
     w2c = cams["w2c"][reg]
-    C = -np.einsum("fji,fj->fi", w2c[:, :3, :3], w2c[:, :3, 3])
+    C = camera_centres(w2c)
     step = np.linalg.norm(np.diff(C, axis=0), axis=1)
     depth = median_depth(w2c, cams["points"])
     if len(step) >= 3 and np.isfinite(depth):
