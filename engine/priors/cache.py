@@ -31,7 +31,7 @@ from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
-ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth": 1, "dynamic": 4}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 2, "depth": 1, "dynamic": 4}
 
 
 @dataclass
@@ -51,6 +51,7 @@ class PriorConfig:
     flow_model: str | None = None
     flow_model_width: int = 240  # working width of a learned flow (shared by tracks and the motion mask)
     flow_fine: bool = False  # DIS tracks: fuse with the finest-scale flow (fast small objects; ~5x slower)
+    dense_moving: bool = False  # tracks: re-seed at half the grid cell in moving regions (see docs/benchmarks.md)
     depth_backend: str = "sparse"
     depth_model: str | None = None
     depth_path: str | None = None
@@ -150,7 +151,7 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
 
     # tracks
     tp = {"backend": cfg.tracks_backend, "model": _file_id(cfg.tracks_model), "path": _file_id(cfg.tracks_path),
-          "n": cfg.num_points, "w": cfg.flow_width, "fb": cfg.fb_thresh, "flow": fid + [bool(cfg.flow_fine)]}
+          "n": cfg.num_points, "w": cfg.flow_width, "fb": cfg.fb_thresh, "flow": fid + [bool(cfg.flow_fine)], "dense": bool(cfg.dense_moving)}
     keys["tracks"] = k = prior_key("tracks", cid, tp)
     z = _load(cache, "tracks", k)
     if z is not None:
@@ -161,7 +162,8 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             tracks = _pre.load_tracks(cfg.tracks_path, F)
         else:
             tracks = _tracks.track_points(frames, cfg.num_points, cfg.tracks_backend, cfg.tracks_model,
-                                          cfg.flow_width, cfg.fb_thresh, reporter=reporter, source=tsource)
+                                          cfg.flow_width, cfg.fb_thresh, reporter=reporter, source=tsource,
+                                          dense_moving=cfg.dense_moving)
         _save(cache, "tracks", k, **dataclasses.asdict(tracks))
     log(f"tracks: {tracks.xy.shape[0]} points")
 

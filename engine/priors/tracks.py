@@ -14,6 +14,17 @@ point are re-seeded (only where the image has texture), so the whole clip is cov
 tracks start on later frames too (``query_frame``). Coordinates are continuous pixel
 coordinates of the original frames.
 
+The flow comes from a :class:`~engine.priors.flow.FlowSource` (``source``; default DIS as
+above, or a learned RAFT-contract flow shared with the motion mask). Options, all measured
+on the generated scenes (``python -m engine.bench priors``, docs/benchmarks.md) and off by
+default because they did not pay off there: ``dense_moving`` re-seeds at half the grid cell
+where the flow departs from a robust homography (about 3x the tracks on moving parts, better
+moving-part coverage, but the extra short tracks triangulate as static anchors and worsen
+the depth and the motion mask); ``bridge_gaps`` looks for a point that failed the one-frame
+check in direct gap-2 / gap-4 flows (longer survival, but more wrong re-finds on moving
+parts); ``retry`` re-tries a failed step with a second flow source; a fused fine-scale DIS
+source (``FlowSource(fuse_fine=True)``, ``PriorConfig.flow_fine``) follows small fast objects.
+
 ``onnx`` backend: a model with inputs ``frames`` float32 [F,3,H,W] (RGB in [0,1]) and
 ``queries`` float32 [P,3] (frame index, x, y in pixels of that input), outputs
 ``xy`` [P,F,2] and ``visible`` [P,F] (logits; > 0 visible). Queries are a grid on frame 0.
@@ -102,7 +113,7 @@ def _fb(source, f, g, p):
 
 
 def flow_tracks(frames, num_points=2000, max_width=480, fb_thresh=1.0, fb_rel=0.05, preset="medium",
-                reporter=None, min_width=400, source=None, bridge_gaps=(), bridge_min=4, dense_moving=True,
+                reporter=None, min_width=400, source=None, bridge_gaps=(), bridge_min=4, dense_moving=False,
                 retry=None):
     """Chained-flow tracks (see module docstring). Returns :class:`Tracks`.
 
