@@ -171,17 +171,18 @@ def _solve(clip: Clip, masks, kw: dict) -> Clip:
         if masks is None and kw["auto_masks"] and F >= 2:
             _say(rep, "camera solve: masking moving regions (motion prior on rough two-view poses)")
             masks = list(camera_free_masks(small, default_K(w, h, kw["fov_deg"]), pairs))
+    why = "the SfM solve is healthy (parallax not measured)"
     if kw["static_fallback"] and F >= 3:
         evidence = parallax_evidence(gray, _masks_at(masks, h, w), rng_seed=seed)
-        moves, words = sel.translation_evidence(evidence, kw["min_parallax_px"])
+        moves, why = sel.translation_evidence(evidence, kw["min_parallax_px"])
         if not moves:
             fixed = fixed_centre_cameras(clip, small, pairs, fov_deg=kw["fov_deg"], solve_scale=s)
             if fixed.meta["solve"]["num_registered"] >= need:
-                return _announce_fixed(fixed, words, [], evidence, seed, rep)
+                return _announce_fixed(fixed, why, [], evidence, seed, rep)
+            why = (f"{why}, but homographies link only {fixed.meta['solve']['num_registered']} of {F} frames "
+                   "(fixed-centre model rejected)")
     cams, mapper, rejected = _run_sfm(small, masks, need, kw)
     if cams is not None:
-        why = (sel.translation_evidence(evidence, kw["min_parallax_px"])[1] if evidence is not None
-               else "the SfM solve is healthy (parallax not measured)")
         return _sfm_clip(clip, cams, mapper, s, (w, h), why, rejected, evidence, seed, rep)
     why = "; ".join(rejected) or "no SfM model"
     if kw["static_fallback"]:
