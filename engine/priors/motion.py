@@ -1,7 +1,7 @@
 """Foreground / dynamic prior ``p_dyn [F,H,W]`` in [0,1].
 
 ``motion`` backend (weight-free). With ``depth``: one-frame DIS flows (<= ``max_width`` px,
-forward and backward) are chained to t±1, t±2, t±4 (a direct k-frame DIS flow fails on
+forward and backward; or a shared learned flow, ``source``, resampled to that size) are chained to t±1, t±2, t±4 (a direct k-frame DIS flow fails on
 repetitive texture); a pixel counts for a gap only while every step is forward-backward
 consistent and stays in view. Per gap two residuals, each divided by its per-frame robust scale
 (median + 1.4826·MAD of the valid pixels, floored at 0.25 px resp. 0.1 px per frame of gap):
