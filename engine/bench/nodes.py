@@ -25,9 +25,7 @@ mani / fps / voxel / tracklet at one node budget (spline trajectories), plus man
 
 Diagnostics (generated scenes): ``--oracle-depth`` / ``--oracle-mask`` replace the depth /
 dynamic prior with the scene's GT depth / mask (one input at a time shows which prior
-limits the trajectories). ``--diagnose`` adds rows: MANI with the opt-in trajectory
-variants (``spline+tri``: ``triangulate_tracks3d``; ``spline+asap``: ``track_depth_scales``
-node depth correction; ``spline+tri+asap``), and two GT-motion ceilings on the same MANI
+limits the trajectories). ``--diagnose`` adds two GT-motion ceilings on the same MANI
 nodes: ``gt-motion`` gives every node the GT motion of the surface at its source pixel
 (GT depth there, nearest GT trajectory point) while keeping its position, i.e. the best a
 trajectory initialiser can do with the node depths as placed; ``gt-motion@gt-depth`` also
@@ -319,11 +317,6 @@ def gt_motion_nodes(nodes, gt: dict, at_gt_depth: bool = False):
                                pos_tangents=catmull_rom_tangents(nodes.key_times.float(), keys))
 
 
-#: ``--diagnose`` rows: label → extra NodeInitConfig fields for MANI + spline.
-DIAGNOSE_VARIANTS = {"spline+tri": {"triangulate": True}, "spline+asap": {"depth_scale": True},
-                     "spline+tri+asap": {"triangulate": True, "depth_scale": True}}
-
-
 def run_generated(args) -> list[dict]:
     from .. import pipeline
     from ..nodes import ManiConfig, NodeInitConfig, initialise_nodes
@@ -379,14 +372,6 @@ def run_generated(args) -> list[dict]:
             if method == "mani" and traj == "spline":
                 mani_nodes = nodes
         if getattr(args, "diagnose", False):
-            for name, extra in DIAGNOSE_VARIANTS.items():
-                icfg = NodeInitConfig(method="mani", mani=ManiConfig(budget=args.budget, seed=args.seed),
-                                      num_keys=num_keys, num_keyframes=min(12, n_train), seed=args.seed, **extra)
-                t0 = time.perf_counter()
-                nodes = initialise_nodes(**inputs, config=icfg)
-                wall = time.perf_counter() - t0
-                rows.append({"scene": label, "res": res, "init": "mani", "trajectory": name, **evaluate_gt(nodes, gt),
-                             "wall_s": round(wall, 3), "prepare_s": round(prep_s, 2)})
             for name, at_depth in (("gt-motion", False), ("gt-motion@gt-depth", True)):
                 rows.append({"scene": label, "res": res, "init": "mani", "trajectory": name,
                              **evaluate_gt(gt_motion_nodes(mani_nodes, gt, at_depth), gt),

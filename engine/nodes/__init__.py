@@ -15,12 +15,11 @@ from .candidates import Candidates, build_candidates, choose_keyframes
 from .graph import node_graph, node_radii
 from .mani import ManiConfig, ManiResult, mani_compress
 from .nodeset import NodeSet
-from .trajectory import (clean_tracks3d, fit_node_trajectories, lift_tracks, node_depth_scales, rescale_along_rays,
-                         track_depth_scales, triangulate_tracks3d)
+from .trajectory import clean_tracks3d, fit_node_trajectories, lift_tracks
 
 __all__ = ["NodeInitConfig", "ManiConfig", "ManiResult", "assemble_nodeset", "NodeSet", "Candidates", "initialise_nodes", "build_candidates",
            "choose_keyframes", "mani_compress", "node_graph", "node_radii", "lift_tracks", "clean_tracks3d",
-           "fit_node_trajectories", "track_depth_scales", "node_depth_scales", "triangulate_tracks3d", "rescale_along_rays", "farthest_point_sampling", "uniform_voxel_centres", "tracklet_clusters",
+           "fit_node_trajectories", "farthest_point_sampling", "uniform_voxel_centres", "tracklet_clusters",
            "METHODS"]
 
 #: Initialisers selectable through ``NodeInitConfig.method``.
@@ -56,14 +55,6 @@ class NodeInitConfig:
     irls_iters: int = 3
     fallback: str = "graph"        #: "graph" or "static" for nodes without tracks
     max_residual_ratio: float | None = 1.0  #: fall back when fit residual > this × explained motion (None: off)
-    # Opt-in depth handling for moving tracks (off: neither beats the plain fit on the bench scenes,
-    # whose blocker is a constant depth bias on moving objects that no ray fit can observe).
-    triangulate: bool = False      #: re-fit moving tracks to their camera rays (``triangulate_tracks3d``)
-    along_weight: float = 1e-3     #: depth-prior weight along the ray, relative to the across-ray one
-    tri_smoothness: float = 1e-3   #: velocity penalty of the triangulation
-    depth_scale: bool = False      #: re-estimate moving tracks' / nodes' depth along their rays (``track_depth_scales``)
-    scale_min_len: int = 8         #: tracks with fewer samples keep the prior's depth
-    scale_range: tuple = (0.5, 2.0)  #: clamp of the depth scale
     seed: int = 0
 
 
@@ -117,41 +108,17 @@ def initialise_nodes(depth, K, w2c, times, tokens, patch_centers, fg, tracks_xy,
         p_dyn = cand.fg[nearest[:, 0]]
         if src_time is None:  # voxel means mix frames: take the nearest candidate's frame
             src_time = cand.time[nearest[:, 0]]
-    return assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config, w2c)
+    return assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config)
 
 
-def assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config: NodeInitConfig, w2c=None) -> NodeSet:
-    """Radii, graph and trajectories for given centres (shared by every initialiser).
-
-    With ``config.depth_scale`` and cameras ``w2c (F, 4, 4)``, spline trajectories first
-    re-estimate depth along the rays: every moving track gets its "as static as possible"
-    scale (:func:`track_depth_scales`), each node the weighted mean scale of its
-    supporting tracks (:func:`node_depth_scales`), and the node slides along its
-    source-frame ray by that scale (its pixel in the source frame does not change), so a
-    node on a moving object whose depth prior was too far moves onto the object.
-    """
+def assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config: NodeInitConfig) -> NodeSet:
+    """Radii, graph and trajectories for given centres (shared by every initialiser)."""
     n = centers.shape[0]
     key_times = torch.linspace(0, 1, max(2, config.num_keys))
     radii = node_radii(centers, config.radius_k, config.radius_factor)
     graph_idx, _ = node_graph(centers, config.graph_k)
     if config.trajectory == "spline":
         frame = _snap_frame(src_time, times)
-        cam = None
-        if w2c is not None and tracks3d.shape[0] > 0:
-            from ..geometry.camera import camera_centers
-
-            cam = camera_centers(torch.as_tensor(w2c).double()).float()  # [F, 3]
-        if config.triangulate and cam is not None:
-            tracks3d = triangulate_tracks3d(tracks3d, cam, times, key_times, config.along_weight,
-                                            config.tri_smoothness)
-        if config.depth_scale and cam is not None:
-            s_track = track_depth_scales(tracks3d, cam, config.scale_min_len, tuple(config.scale_range))
-            s_node = node_depth_scales(centers, frame, radii, tracks3d, s_track, config.k_tracks,
-                                       config.support_radius)
-            centers = rescale_along_rays(centers.float(), cam[frame], s_node.unsqueeze(1))
-            tracks3d = rescale_along_rays(tracks3d.float(), cam.unsqueeze(0), s_track[:, None, None])
-            radii = node_radii(centers, config.radius_k, config.radius_factor)
-            graph_idx, _ = node_graph(centers, config.graph_k)
         pos_keys, pos_tan, support = fit_node_trajectories(
             centers, frame, radii, tracks3d, times, key_times, graph_idx,
             config.k_tracks, config.support_radius, config.smoothness, None, config.irls_iters,

@@ -14,8 +14,7 @@ import torch.nn.functional as F
 
 from ..geometry.binding import knn_nodes
 from ..geometry.camera import unproject
-from ..geometry.hermite import (catmull_rom_tangents, difference_matrix, hermite_basis_matrix, hermite_eval,
-                                hermite_fit)
+from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_fit
 
 
 def lift_tracks(tracks_xy: torch.Tensor, tracks_vis: torch.Tensor, depth: torch.Tensor, K: torch.Tensor,
@@ -155,130 +154,6 @@ def clean_tracks3d(tracks3d: torch.Tensor, tracks_xy: torch.Tensor, K: torch.Ten
 
 
 
-def triangulate_tracks3d(tracks3d: torch.Tensor, cam_centers: torch.Tensor, times: torch.Tensor,
-                         key_times: torch.Tensor, along_weight: float = 1e-3, smoothness: float = 1e-3,
-                         irls_iters: int = 2, huber: float = 0.01, ridge: float = 1e-6) -> torch.Tensor:
-    """Re-fit every moving lifted track as a Hermite spline constrained by its camera rays.
-
-    Trajectory triangulation: a track sample at frame ``t`` says the point lies on the ray
-    from ``C_t`` through ``y_t`` (its lifted position, direction ``d_t``); the depth prior
-    only says *where* on the ray, and on moving objects it is the weak part. Per track, the
-    Catmull-Rom keys ``P`` (``X(t) = B(t)·P``, linear) minimise ::
-
-        Σ_t ρ_t/r_t² [ ‖(I − d_t d_tᵀ)(X(t) − y_t)‖² + β (d_tᵀ(X(t) − y_t))² ] + λ Σ_t ρ_t/r_t² · ‖D₁P‖²/F
-
-    (``r_t = ‖y_t − C_t‖``, so the terms are angles and relative depths; ``β =
-    along_weight`` ≪ 1 makes the prior's depth a weak regulariser along the ray and ``λ =
-    smoothness`` a velocity penalty; ``ρ_t`` are IRLS Huber weights on the across-ray
-    angle, threshold ``huber`` radians). Where camera parallax constrains the depth the
-    rays decide; where it does not, the depth prior and the smoothness decide, which keeps
-    the previous behaviour. **Conditioning:** when the camera path is smooth it lies in the
-    span of the spline, so ``C(t) + s(t)·(X(t) − C(t))`` fits the rays for every slowly
-    varying ``s(t)``: only the fast, frame-to-frame part of the depth noise is observable
-    and removed (~1.5× lower error on ±8 % per-frame noise in the tests); a constant or
-    slowly drifting depth *bias* (what the weight-free prior has on moving objects) is not,
-    and stays. One small (3K × 3K) system per track, batched. Tracks that do not move
-    (frozen by :func:`clean_tracks3d`) are returned unchanged, as is the NaN pattern.
-
-    Parameters
-    ----------
-    tracks3d : (P, F, 3) world, NaN = missing; cam_centers : (F, 3); times : (F,); key_times : (K,).
-
-    Returns
-    -------
-    (P, F, 3) triangulated tracks, NaN where the input is.
-    """
-    p, f, _ = tracks3d.shape
-    ok = torch.isfinite(tracks3d).all(-1)
-    y = torch.nan_to_num(tracks3d.double())
-    mean = (y * ok.unsqueeze(-1)).sum(1) / ok.sum(1, keepdim=True).clamp_min(1)
-    moving = ((y - mean.unsqueeze(1)).norm(dim=-1) * ok).amax(1) > 0
-    moving &= ok.sum(1) >= 2
-    if not bool(moving.any()):
-        return tracks3d
-    y, ok = y[moving], ok[moving]
-    m = y.shape[0]
-    C = cam_centers.double()
-    B = hermite_basis_matrix(key_times.double(), times.double())  # [F, K]
-    k = B.shape[1]
-    v = y - C
-    r = v.norm(dim=-1).clamp_min(1e-9)
-    d = v / r.unsqueeze(-1)
-    ddT = d.unsqueeze(-1) * d.unsqueeze(-2)  # [M, F, 3, 3]
-    perp = torch.eye(3, dtype=torch.float64) - ddT
-    metric = perp + along_weight * ddT
-    D1 = difference_matrix(k, 1, torch.float64)
-    eye3k = torch.eye(3 * k, dtype=torch.float64)
-    rho = ok.double()
-    for it in range(max(1, irls_iters + 1)):  # IRLS iterations
-        a = rho / r ** 2
-        Mt = a[..., None, None] * metric  # [M, F, 3, 3]
-        H = torch.einsum("fk,fl,mfij->mkilj", B, B, Mt).reshape(m, 3 * k, 3 * k)
-        rhs = torch.einsum("fk,mfij,mfj->mki", B, Mt, y).reshape(m, 3 * k)
-        lam = smoothness * a.sum(1) / f
-        H = H + lam[:, None, None] * torch.kron(D1.T @ D1, torch.eye(3, dtype=torch.float64))
-        eps = ridge * (1 + torch.diagonal(H, dim1=1, dim2=2).mean(1))
-        H = H + eps[:, None, None] * eye3k
-        rhs = rhs + eps[:, None] * mean[moving].repeat(1, k)
-        keys = torch.linalg.solve(H, rhs).reshape(m, k, 3)
-        X = torch.einsum("fk,mkc->mfc", B, keys)
-        if it == irls_iters:
-            break
-        ang = (perp @ (X - y).unsqueeze(-1)).squeeze(-1).norm(dim=-1) / r
-        rho = ok.double() * torch.where(ang <= huber, torch.ones_like(ang), huber / ang.clamp_min(1e-12))
-    out = tracks3d.clone()
-    out[moving] = torch.where(ok.unsqueeze(-1), X.to(tracks3d.dtype), torch.full_like(X, float("nan")).to(tracks3d.dtype))
-    return out
-
-
-def track_depth_scales(tracks3d: torch.Tensor, cam_centers: torch.Tensor, min_len: int = 8,
-                       scale_range: tuple[float, float] = (0.5, 2.0)) -> torch.Tensor:
-    """Per-track depth scale of moving tracks by the "as static as possible" rule.
-
-    Monocular depth of a moving point is ambiguous along the rays: every trajectory
-    ``X_s(t) = C(t) + s·(Y(t) − C(t))`` (``C`` camera centres, ``Y`` the lifted track)
-    reprojects to the same pixels, and when the camera path is smooth a spline fit cannot
-    tell them apart. A depth prior that fills moving regions from their static
-    surroundings picks the wrong ``s`` (too far, 1.1–1.5× on the generated scenes), and
-    the error becomes fake motion ``(s − 1)·ΔC`` that follows the camera. This picks, per
-    track, the ``s`` with the least motion: ``argmin_s Σ_t ‖X_s(t) − mean_t X_s‖²``, i.e.
-    ``s = −Σ_t (A_t − Ā)·(C_t − C̄) / Σ_t ‖A_t − Ā‖²`` with ``A = Y − C``. A static point
-    gets exactly its true depth back; a moving one the depth at which its motion is least
-    explained by the camera's, which is right only when the object's motion is
-    uncorrelated with the camera's (an object moving along with the camera is made
-    static). Closed form, vectorised over tracks. Opt-in (``NodeInitConfig.depth_scale``):
-    on the generated scenes it corrects the node depth of objects with long tracks (arm
-    base 1.28 → 1.10, flag 1.06 → 1.02 of the true depth) but mostly by removing their
-    motion, and with a correct depth it makes trajectories worse (see the bench).
-
-    A track frozen by :func:`clean_tracks3d` (constant ``Y``) gets ``s = 1`` exactly;
-    tracks with fewer than ``min_len`` samples keep ``s = 1``; the result is clamped to
-    ``scale_range``.
-
-    Parameters
-    ----------
-    tracks3d : (P, F, 3) world, NaN = missing; cam_centers : (F, 3).
-
-    Returns
-    -------
-    (P,) scales (multiply the camera-to-point vectors).
-    """
-    p = tracks3d.shape[0]
-    if p == 0:
-        return torch.ones(0)
-    ok = torch.isfinite(tracks3d).all(-1)
-    w = ok.float().unsqueeze(-1)
-    n = w.sum(1, keepdim=True).clamp_min(1.0)
-    A = torch.nan_to_num(tracks3d.float()) - cam_centers.float()
-    C = cam_centers.float().unsqueeze(0)
-    dA = (A - (A * w).sum(1, keepdim=True) / n) * w
-    dC = (C - (C * w).sum(1, keepdim=True) / n) * w
-    den = (dA * dA).sum((1, 2))
-    s = -(dA * dC).sum((1, 2)) / den.clamp_min(1e-12)
-    use = (ok.sum(1) >= min_len) & (den > 0) & torch.isfinite(s)
-    return torch.where(use, s.clamp(*scale_range), torch.ones_like(s))
-
-
 def _support_tracks(centers, source_frame, radii, tracks3d, k, support_radius):
     """Each node's ``k`` nearest tracks at its source frame and their weights
     ``exp(−d²/2ρ²)`` (zero beyond ``support_radius × ρ`` or where there is no track)."""
@@ -297,27 +172,6 @@ def _support_tracks(centers, source_frame, radii, tracks3d, k, support_radius):
         tr[sel, :k_here] = tid[idx]
         wts[sel, :k_here] = torch.exp(-d2 / (2 * rho ** 2)) * (d2 <= (support_radius * rho) ** 2)
     return tr, wts
-
-
-def node_depth_scales(centers, source_frame, radii, tracks3d, track_scale, k_tracks: int = 8,
-                      support_radius: float = 2.0) -> torch.Tensor:
-    """Per-node depth scale: the support-weighted geometric mean of the
-    :func:`track_depth_scales` of the tracks that support the node at its source frame
-    (the same tracks and weights as :func:`fit_node_trajectories`); 1 without support."""
-    n = centers.shape[0]
-    kk = min(k_tracks, tracks3d.shape[0])
-    if kk == 0 or n == 0:
-        return torch.ones(n)
-    tr, w = _support_tracks(centers, source_frame, radii, tracks3d, kk, support_radius)
-    den = w.sum(1)
-    ls = (w * track_scale.float()[tr].log()).sum(1) / den.clamp_min(1e-12)
-    return torch.where(den > 0, ls.exp(), torch.ones_like(ls))
-
-
-def rescale_along_rays(points: torch.Tensor, origins: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """``origin + scale·(point − origin)``: slide points along their camera rays (the
-    projection in that camera is unchanged). Broadcasts; NaN points stay NaN."""
-    return origins + scale * (points - origins)
 
 
 def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, radii: torch.Tensor,
