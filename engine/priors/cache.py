@@ -31,7 +31,7 @@ from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
-ALGO_VERSIONS = {"tokens": 1, "tracks": 2, "depth": 1, "dynamic": 4}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth": 1, "dynamic": 4}
 
 
 @dataclass
@@ -50,7 +50,7 @@ class PriorConfig:
     flow_backend: str = "dis"  # 'auto' (shipped RAFT when usable, else DIS) | 'dis' | 'onnx' (flow_model)
     flow_model: str | None = None
     flow_model_width: int = 240  # working width of a learned flow (shared by tracks and the motion mask)
-    flow_fine: bool = False  # DIS tracks: fuse with the finest-scale flow (fast small objects; ~5x slower)
+    flow_fine: bool = True  # DIS tracks: fuse with the finest-scale flow (follows small fast objects; ~4x the flow time)
     dense_moving: bool = False  # tracks: re-seed at half the grid cell in moving regions (see docs/benchmarks.md)
     depth_backend: str = "sparse"
     depth_model: str | None = None

@@ -22,8 +22,10 @@ where the flow departs from a robust homography (about 3x the tracks on moving p
 moving-part coverage, but the extra short tracks triangulate as static anchors and worsen
 the depth and the motion mask); ``bridge_gaps`` looks for a point that failed the one-frame
 check in direct gap-2 / gap-4 flows (longer survival, but more wrong re-finds on moving
-parts); ``retry`` re-tries a failed step with a second flow source; a fused fine-scale DIS
-source (``FlowSource(fuse_fine=True)``, ``PriorConfig.flow_fine``) follows small fast objects.
+parts); ``retry`` re-tries a failed step with a second flow source. :func:`compute_priors`
+gives the tracker a fused fine-scale DIS source by default (``FlowSource(fuse_fine=True)``,
+``PriorConfig.flow_fine``): it follows small fast objects (moving-part coverage 0.33 -> 0.40
+and 0.06 -> 0.10 on the generated small / large-motion scenes) at ~4x the flow time.
 
 ``onnx`` backend: a model with inputs ``frames`` float32 [F,3,H,W] (RGB in [0,1]) and
 ``queries`` float32 [P,3] (frame index, x, y in pixels of that input), outputs

@@ -185,3 +185,14 @@ def test_fused_dis_follows_a_small_fast_object():
         assert np.allclose(src(3, 2)[bg].mean(0), -gt[bg].mean(0), atol=0.1)  # backward flow memoised too
     assert err[False][0] > 0.3 and err[True][0] < 0.15, err
     assert err[True][1] < 0.1, err
+
+
+def test_default_tracks_use_the_fused_flow(tmp_path):
+    frames, depth, mask, K, w2c = scene.render(F=4)
+    real = flow_mod.dis_fused
+    for fine, expect in ((True, 3), (False, 0)):
+        calls = []
+        with mock.patch.object(flow_mod, "dis_fused", side_effect=lambda *a: calls.append(1) or real(*a)):
+            p = compute_priors(frames, K[:4], w2c[:4], PriorConfig(num_points=200, flow_fine=fine))
+        assert len(calls) == expect and p.tracks.xy.shape[1] == 4  # one call per pair gives both directions
+    assert PriorConfig().flow_fine
