@@ -21,10 +21,9 @@ import torch
 from ..errors import InputError
 
 #: Keys every checkpoint holds (a file without them is not a complete training state).
-REQUIRED_KEYS = ("step", "model", "optimizer", "gen", "torch_rng", "grad_accum", "grad_count", "max_radii",
-                 "history")
+REQUIRED_KEYS = ("step", "model", "optimizer", "gen", "torch_rng", "grad_accum", "grad_count", "history")
 #: Config keys that change where or how often things happen, never what is computed.
-VOLATILE_CONFIG_KEYS = ("device", "backend", "checkpoint_every", "log_every", "eval_every")
+VOLATILE_CONFIG_KEYS = ("device", "backend", "checkpoint_every", "log_every")
 
 _FIX = "pass --overwrite to start that run over, or a new --out folder"
 

@@ -14,11 +14,17 @@ the wrong type are refused with a message naming the key.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: Keys older versions wrote (scene.json ``config``) that nothing read; ignored with a warning.
+REMOVED_KEYS = ("batch_frames", "eval_every")
 
 INIT_METHODS = ("mani", "fps", "voxel", "tracklet")
 MOTION_MODELS = ("spline", "mlp", "per_frame")
@@ -84,7 +90,6 @@ class TrainConfig:
     # optimisation
     steps: int = 600
     warmup_static_steps: int = 50        # first steps train appearance with motion frozen
-    batch_frames: int = 1
     lr_means: float = 1.6e-4             # relative to scene extent
     lr_means_final: float = 1.6e-6
     lr_quats: float = 1e-3
@@ -116,7 +121,6 @@ class TrainConfig:
     # bookkeeping
     checkpoint_every: int = 200
     log_every: int = 10
-    eval_every: int = 0                  # 0 = only at the end
 
     loss: LossWeights = field(default_factory=LossWeights)
 
@@ -142,10 +146,10 @@ class TrainConfig:
             if isinstance(value, float) and not math.isfinite(value):
                 bad(f.name, f"must be a finite number, got {value!r}")
         for key in ("width", "steps", "num_nodes", "bind_k", "gaussians_per_frame", "init_keyframes",
-                    "max_gaussians", "batch_frames", "log_every", "densify_every"):
+                    "max_gaussians", "log_every", "densify_every"):
             if getattr(self, key) < 1:
                 bad(key, "must be >= 1")
-        for key in ("max_frames", "num_keys", "rebind_every", "checkpoint_every", "eval_every", "opacity_reset_every",
+        for key in ("max_frames", "num_keys", "rebind_every", "checkpoint_every", "opacity_reset_every",
                     "warmup_static_steps", "densify_from", "densify_until", "node_add_max"):
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
@@ -179,6 +183,9 @@ class TrainConfig:
         known = {f.name: f for f in dataclasses.fields(cls)}
         kwargs: dict[str, Any] = {}
         for key, value in data.items():
+            if key in REMOVED_KEYS:  # an older bundle's or user's config: nothing ever read it
+                log.warning(f"config key {key!r} is no longer used and was ignored ({source or 'config'})")
+                continue
             if key not in known:
                 raise InputError(f"unknown config key {key!r}", source, f"valid keys: {sorted(known)}")
             if key == "loss":
@@ -218,7 +225,7 @@ def _loss_from_dict(data: Any, source: str | None) -> LossWeights:
 #: typo such as ``steps: 10**12`` or ``width: 100000`` is refused instead of accepted).
 LIMITS: dict[str, int] = {"width": 8192, "steps": 10_000_000, "num_nodes": 200_000, "num_keys": 10_000,
                           "bind_k": 64, "gaussians_per_frame": 2_000_000, "init_keyframes": 1000,
-                          "max_gaussians": 20_000_000, "max_frames": 100_000, "batch_frames": 64,
+                          "max_gaussians": 20_000_000, "max_frames": 100_000,
                           "node_add_max": 100_000}
 
 PRESETS: dict[str, dict[str, Any]] = {

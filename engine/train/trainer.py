@@ -170,7 +170,6 @@ class Trainer:
         g = self.model.num_gaussians
         self.grad_accum = torch.zeros(g, device=self.device)
         self.grad_count = torch.zeros(g, device=self.device)
-        self.max_radii = torch.zeros(g, device=self.device)
 
     def _prepare_tracks(self):
         """Lift each track once (first visible frame + depth) and map it to canonical space."""
@@ -573,7 +572,6 @@ class Trainer:
             "gen": self._gen_state if getattr(self, "_gen_state", None) is not None else self.gen.get_state(),
             "torch_rng": torch.get_rng_state(),
             "grad_accum": self.grad_accum.cpu(), "grad_count": self.grad_count.cpu(),
-            "max_radii": self.max_radii.cpu(),
             "history": [[h["step"], h["loss"], h["psnr"]] for h in self.history],
             "train_seconds": self.train_seconds,
             "initial_eval": {k: float(v) for k, v in (self.initial_eval or {}).items()},
@@ -632,7 +630,6 @@ class Trainer:
         self.step = int(state["step"])
         self.grad_accum = state["grad_accum"].to(dev)
         self.grad_count = state["grad_count"].to(dev)
-        self.max_radii = state["max_radii"].to(dev)
         self.history = [{"step": int(s), "loss": float(lo), "psnr": float(p)} for s, lo, p in state["history"]]
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self.initial_eval = dict(state.get("initial_eval") or {}) or None
@@ -683,16 +680,14 @@ class Trainer:
                 with torch.no_grad(), ph("densify_stats"):
                     grad2d = out.grad2d()
                     if grad2d is not None and cfg.densify_from <= self.step < cfg.densify_until:
-                        radii = out.radii.reshape(-1)
-                        vis = radii > 0
+                        vis = out.radii.reshape(-1) > 0
                         gn = grad2d.norm(dim=-1)
                         # gradient in NDC-like units: scale pixel gradients by half the image size
                         gn = gn * 0.5 * max(d.width, d.height)
                         # dense updates instead of boolean-mask gather/scatter, same values:
-                        # invisible Gaussians add exactly 0 and their radius is 0 <= max_radii
+                        # invisible Gaussians add exactly 0
                         self.grad_accum += torch.where(vis, gn, 0.0)
                         self.grad_count += vis
-                        torch.maximum(self.max_radii, radii.to(self.max_radii), out=self.max_radii)
                 self.step += 1
                 # the step's frame draw is done: a checkpoint from here on stores the sampler
                 # state after it, so a resume draws the next step's frame, not this one again
