@@ -480,10 +480,6 @@ class Bundle:
     gaussians: GaussianArrays | None
 
 
-def is_bundle(path: str | os.PathLike) -> bool:
-    return (Path(path) / SCENE_FILE).is_file()
-
-
 def save_bundle(path: str | os.PathLike, scene: dict, nodes: NodeArrays | None = None,
                 gaussians: GaussianArrays | None = None) -> Path:
     """Write the given parts of a bundle into folder ``path`` (each file atomically).

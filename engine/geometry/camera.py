@@ -144,13 +144,6 @@ def intrinsics(fx: float, fy: float, cx: float, cy: float, dtype=torch.float64) 
     return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype)
 
 
-def scale_intrinsics(K: torch.Tensor, sx: float, sy: float | None = None) -> torch.Tensor:
-    """Intrinsics for an image resized by ``(sx, sy)``; exact in continuous pixel coords."""
-    sy = sx if sy is None else sy
-    S = torch.diag(torch.tensor([sx, sy, 1.0], dtype=K.dtype, device=K.device))
-    return S @ K
-
-
 @dataclasses.dataclass
 class Camera:
     """One camera: ``K [3, 3]``, ``w2c [4, 4]``, image size, optional distortion and time."""

@@ -8,13 +8,6 @@ from __future__ import annotations
 import torch
 
 
-def quat_identity(shape=(), dtype=torch.float32, device=None) -> torch.Tensor:
-    """Identity quaternions of shape ``[*shape, 4]``."""
-    q = torch.zeros(*shape, 4, dtype=dtype, device=device)
-    q[..., 0] = 1
-    return q
-
-
 def quat_normalize(q: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     """``q / |q|`` for ``[..., 4]``; a zero quaternion becomes the identity."""
     n = q.norm(dim=-1, keepdim=True)

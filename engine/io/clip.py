@@ -14,7 +14,6 @@ Frames are loaded lazily: a clip stores image paths, or a video path plus frame 
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 from typing import Any
 
@@ -398,7 +397,3 @@ def finalize(clip: Clip) -> Clip:
             c, s = scene_bounds(clip.camera_centers(), clip.points)
             clip.scene_center, clip.scene_scale = c, s
     return clip
-
-
-def as_path(p) -> Path:
-    return Path(os.fspath(p))
