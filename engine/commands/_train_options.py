@@ -13,6 +13,9 @@ def add_clip_options(parser):
     parser.add_argument("--width", type=int, help="training width in pixels (preset default)")
     parser.add_argument("--steps", type=int, help="training steps (preset default)")
     parser.add_argument("--nodes", type=int, dest="num_nodes", help="node budget (preset default)")
+    parser.add_argument("--keys", type=int, dest="num_keys",
+                        help="spline keyframes per node (default: one per ~4 training frames, at least 4); "
+                             "MANI's own settings go in --config as {\"mani\": {\"eta\": ..., \"r_max\": ...}}")
     parser.add_argument("--init", choices=("mani", "fps", "voxel", "tracklet"), help="node initialiser (default mani)")
     parser.add_argument("--motion", choices=("spline", "mlp", "per_frame"), help="node motion model (default spline)")
     parser.add_argument("--motion-init", choices=("auto", "tracks", "rest"),
@@ -66,7 +69,7 @@ def config_from_args(args):
         # validated on its own first, so its errors name the file and the key
         TrainConfig.from_dict({**PRESETS.get(args.preset, {}), **overrides, "preset": args.preset}, args.config)
     options = {}
-    for key in ("width", "steps", "num_nodes", "init", "motion", "motion_init", "seed", "device", "backend"):
+    for key in ("width", "steps", "num_nodes", "num_keys", "init", "motion", "motion_init", "seed", "device", "backend"):
         value = getattr(args, key, None)
         if value is not None:
             options[key] = value

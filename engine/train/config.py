@@ -51,6 +51,25 @@ class LossWeights:
     static_init: float = 0.0  # 1: measure that motion relative to each node's initial (track-fitted) trajectory
 
 
+#: Where a merged MANI node sits (engine/nodes/mani.py module doc).
+MANI_MERGES = ("medoid", "representative", "mean")
+
+
+@dataclass
+class ManiSettings:
+    """MANI's settings (:class:`engine.nodes.mani.ManiConfig`; its budget is ``num_nodes``).
+    Voxel sizes are fractions of the scene's bounding-box diagonal."""
+
+    v_init: float = 0.01      # initial voxel size
+    dv: float = 0.01          # voxel growth per iteration
+    eta: float = 0.5          # weight of the foreground term in the candidates' similarity
+    alpha: float = 6.0        # p_dyn weight of the voxel's mean foreground prior
+    beta: float = 4.0         # p_dyn weight of the voxel's mean matched similarity
+    r_min: float = 0.2        # merge fraction of a fully dynamic voxel
+    r_max: float = 0.4        # merge fraction of a fully static voxel
+    merge: str = "medoid"     # merged node position: medoid | representative | mean
+
+
 @dataclass
 class TrainConfig:
     """All hyper-parameters of one reconstruction run."""
@@ -63,6 +82,8 @@ class TrainConfig:
     # data
     width: int = 240                     # training resolution (long side is scaled to this width)
     max_frames: int = 0                  # 0 = all frames of the training split
+    holdout: int = 0                     # N > 1: withhold every N-th training frame (time order) and score it;
+                                         # the held-out protocol for clips without a second camera
 
     # representation
     init: str = "mani"                   # node initialiser: mani | fps | voxel | tracklet
@@ -78,6 +99,8 @@ class TrainConfig:
     dynamic_gaussians: int = 6000        # Gaussians seeded on moving pixels, spread over all training frames
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
+    radius_k: int = 4                    # node RBF radius from the distance to this many nearest nodes
+    radius_factor: float = 1.0           # ... times this factor
     bind_k: int = 4                      # nodes per Gaussian (K in the paper)
     canonical_time: float = 0.5          # canonical node centres: initial positions at this point of the
                                          # training frames (0..1); -1 = each node's own source frame
@@ -123,6 +146,7 @@ class TrainConfig:
     log_every: int = 10
 
     loss: LossWeights = field(default_factory=LossWeights)
+    mani: ManiSettings = field(default_factory=ManiSettings)
 
     # ------------------------------------------------------------------------------
     def validate(self, source: str | None = None) -> "TrainConfig":
@@ -165,6 +189,7 @@ class TrainConfig:
             bad("canonical_time", "must be in [0, 1] (fraction of the training frames) or -1 (source frames)")
         if self.bind_k > self.num_nodes:
             bad("bind_k", "cannot exceed num_nodes")
+        self._validate_nodes(bad)
         for f in dataclasses.fields(self.loss):
             value = getattr(self.loss, f.name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
@@ -172,6 +197,24 @@ class TrainConfig:
             if value < 0:
                 bad(f"loss.{f.name}", "must be >= 0")
         return self
+
+    def _validate_nodes(self, bad) -> None:
+        """Node-initialisation settings: radius and MANI (``bad(key, why)`` raises)."""
+        if self.radius_k < 1:
+            bad("radius_k", "must be >= 1")
+        if not self.radius_factor > 0:
+            bad("radius_factor", "must be > 0")
+        m = self.mani
+        for f in dataclasses.fields(m):
+            value = getattr(m, f.name)
+            if f.name != "merge" and (not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0):
+                bad(f"mani.{f.name}", f"must be a finite number >= 0, got {value!r}")
+        if m.merge not in MANI_MERGES:
+            bad("mani.merge", f"must be one of {MANI_MERGES}")
+        if not (m.v_init > 0 and m.dv > 0):
+            bad("mani.v_init" if m.v_init <= 0 else "mani.dv", "must be > 0 (voxels must grow from a positive size)")
+        if not m.r_min <= m.r_max <= 1:
+            bad("mani.r_min", "needs 0 <= r_min <= r_max <= 1 (merge fractions)")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -191,6 +234,9 @@ class TrainConfig:
             if key == "loss":
                 kwargs["loss"] = _loss_from_dict(value, source)
                 continue
+            if key == "mani":
+                kwargs["mani"] = _mani_from_dict(value, source)
+                continue
             default = getattr(cls(), key)
             if isinstance(default, bool):
                 if not isinstance(value, bool):
@@ -207,6 +253,23 @@ class TrainConfig:
             else:
                 kwargs[key] = value
         return cls(**kwargs).validate(source)
+
+
+def _mani_from_dict(data: Any, source: str | None) -> ManiSettings:
+    if isinstance(data, ManiSettings):
+        return data
+    if not isinstance(data, dict):
+        raise InputError("config key 'mani' must be an object", source, "e.g. {\"r_max\": 0.5}")
+    fields = {f.name: f for f in dataclasses.fields(ManiSettings)}
+    for key, value in data.items():
+        if key not in fields:
+            raise InputError(f"unknown MANI setting {key!r}", source, f"valid: {sorted(fields)}")
+        want_str = key == "merge"
+        ok = isinstance(value, str) if want_str else (isinstance(value, (int, float)) and not isinstance(value, bool))
+        if not ok:
+            raise InputError(f"MANI setting {key!r} must be {'a string' if want_str else 'a number'}, got {value!r}",
+                             source, "fix the value's type")
+    return ManiSettings(**{k: v if k == "merge" else float(v) for k, v in data.items()})
 
 
 def _loss_from_dict(data: Any, source: str | None) -> LossWeights:

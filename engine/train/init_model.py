@@ -204,7 +204,8 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         pos_keys = torch.where(node_dyn[:, None, None], pos_keys, rest)
     if cfg.motion != "mlp" and cfg.canonical_time >= 0:
         pos_tan = as_t(nodes.pos_tangents) if node_dyn is None else None
-        centers, radii, graph = common_canonical_nodes(data, key_times, pos_keys, pos_tan, cfg.canonical_time, graph)
+        centers, radii, graph = common_canonical_nodes(data, key_times, pos_keys, pos_tan, cfg.canonical_time, graph,
+                                                       cfg.radius_k, cfg.radius_factor)
     if node_dyn is not None and graph is not None:
         graph = graph_within_class(centers, node_dyn, graph.shape[1])
     if cfg.motion == "per_frame":
@@ -248,7 +249,8 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
 
 
 def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys: torch.Tensor,
-                           pos_tangents: torch.Tensor, t_rel: float, graph: torch.Tensor | None):
+                           pos_tangents: torch.Tensor, t_rel: float, graph: torch.Tensor | None,
+                           radius_k: int = 4, radius_factor: float = 1.0):
     """Canonical node centres at one shared time: each node's initial position there.
 
     An initialiser places every node where it was seen, at its own source frame; nodes on a
@@ -267,7 +269,6 @@ def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys
     graph [N, k] (``None`` in, ``None`` out).
     """
     from ..geometry.hermite import hermite_eval
-    from ..nodes import NodeInitConfig
     from ..nodes.graph import node_graph, node_radii
 
     from ..geometry.hermite import catmull_rom_tangents
@@ -277,8 +278,7 @@ def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys
     times = torch.sort(data.times[data.train_idx].to(pos_keys.dtype)).values
     t_c = times[int(round(t_rel * (len(times) - 1)))].reshape(1)
     centers = hermite_eval(key_times, pos_keys, pos_tangents, t_c)[:, 0]
-    ncfg = NodeInitConfig()
-    radii = node_radii(centers, ncfg.radius_k, ncfg.radius_factor)
+    radii = node_radii(centers, radius_k, radius_factor)  # the run's radius settings, as the initialiser's
     if graph is not None:
         graph = node_graph(centers, graph.shape[1])[0]
     return centers, radii, graph
