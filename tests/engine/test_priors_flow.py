@@ -196,3 +196,18 @@ def test_default_tracks_use_the_fused_flow(tmp_path):
             p = compute_priors(frames, K[:4], w2c[:4], PriorConfig(num_points=200, flow_fine=fine))
         assert len(calls) == expect and p.tracks.xy.shape[1] == 4  # one call per pair gives both directions
     assert PriorConfig().flow_fine
+
+
+def test_cli_flow_and_depth_output_options(tmp_path):
+    import argparse
+
+    from engine.commands._train_options import add_clip_options, prior_config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_clip_options(parser)
+    base = [str(tmp_path / "clip.mp4"), "--out", str(tmp_path / "out"), "--no-models"]
+    cfg = prior_config_from_args(parser.parse_args(base + ["--flow-model", "m.onnx", "--depth-output", "depth"]))
+    assert (cfg.flow_backend, cfg.flow_model, cfg.depth_output) == ("onnx", "m.onnx", "depth")
+    cfg = prior_config_from_args(parser.parse_args(base + ["--flow-backend", "auto"]))
+    assert (cfg.flow_backend, cfg.flow_model, cfg.depth_output) == ("auto", None, None)
+    assert prior_config_from_args(parser.parse_args(base)).flow_backend == "dis"
