@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.slow  # long end-to-end: `pytest -m "not slow"` skips it
+
 REPO = Path(__file__).resolve().parents[1]
 
 

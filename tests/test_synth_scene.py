@@ -12,6 +12,8 @@ cv2 = pytest.importorskip("cv2")
 
 from tools.synth_scene import generate_scene  # noqa: E402
 
+pytestmark = pytest.mark.slow  # long end-to-end: `pytest -m "not slow"` skips it
+
 
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory):

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # long end-to-end: `pytest -m "not slow"` skips it
+
 REPO = Path(__file__).resolve().parents[2]
 PARTS = ("load_s", "empties_s", "fcurves_s", "rig_s", "attributes_s", "preview_s", "camera_s", "total_s")
 

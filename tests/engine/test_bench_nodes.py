@@ -40,6 +40,7 @@ def _check(rows, keys, budget):
     assert rows[0]["dyn_frac"] == rows[1]["dyn_frac"]
 
 
+@pytest.mark.slow
 def test_generated_scene_rows(tmp_path):
     pytest.importorskip("bpy")
     pytest.importorskip("cv2")
@@ -48,6 +49,7 @@ def test_generated_scene_rows(tmp_path):
     assert 0.0 < rows[0]["dyn_share_gt"] < 1.0 and rows[0]["extent"] > 0
 
 
+@pytest.mark.slow
 def test_procedural_rows():
     rows = bench.run(_args(procedural=True, frames=8, budget=60, skip_speed=True))
     _check(rows, ("scene", "init", "trajectory", "nodes", "dyn_frac", "density_ratio", "traj_err", "wall_s"), 60)

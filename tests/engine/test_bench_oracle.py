@@ -12,6 +12,8 @@ from engine.bench import priors as bench  # noqa: E402
 from engine.bench.oracle import write_oracle_priors  # noqa: E402
 from engine.priors.precomputed import load_depth, load_mask, load_tracks  # noqa: E402
 
+pytestmark = pytest.mark.slow  # long end-to-end: `pytest -m "not slow"` skips it
+
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):

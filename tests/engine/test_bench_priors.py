@@ -79,6 +79,7 @@ def test_prior_options_build_the_config(tmp_path):
     assert (tmp_path / "depth.onnx.json").read_text() == '{"size_multiple": 64}'
 
 
+@pytest.mark.slow
 def test_bench_rows(scene):
     rows = bench.bench_scene(scene, solve=False)
     groups = {r["group"]: r for r in rows}
@@ -100,6 +101,7 @@ def test_bench_rows(scene):
     assert 0.0 <= groups["tracks"]["survival"] <= 1.0 and groups["tracks"]["epe_median"] < 20
 
 
+@pytest.mark.slow
 def test_cli_registered_and_text_rows(scene, capsys):
     assert "priors" in BENCHES
     args = build_parser().parse_args(["priors", "--scene", str(scene), "--skip-solve"])

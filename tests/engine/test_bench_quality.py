@@ -28,6 +28,7 @@ def test_seed_means_average_each_configuration_over_training_seeds():
     assert fps["psnr"] == 19.0 and fps["psnr_std"] is None
 
 
+@pytest.mark.slow
 def test_bench_quality_rows(tmp_path):
     pytest.importorskip("bpy")
     gen = subprocess.run([sys.executable, "tools/synth_scene.py", "--out", str(tmp_path / "clip"), "--preset", "tiny",

@@ -6,10 +6,14 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).parent))
 from test_solve_selection import fixed_w2c, render_clip  # noqa: E402
 
 from engine.bench.__main__ import main  # noqa: E402
+
+pytestmark = pytest.mark.slow  # long end-to-end: `pytest -m "not slow"` skips it
 
 
 def test_bench_solve_repeats_in_fresh_processes_agree(tmp_path, capsys):

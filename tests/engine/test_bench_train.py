@@ -8,6 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.slow  # long end-to-end: `pytest -m "not slow"` skips it
+
 REPO = Path(__file__).resolve().parents[2]
 
 REQUIRED = ("scene", "width", "height", "gaussians", "nodes", "steps", "its_per_s", "ms_step", "cpu_ms_step",

@@ -40,6 +40,7 @@ def _die_at(trainer, step):
     trainer._loss = loss
 
 
+@pytest.mark.slow
 def test_resume_from_periodic_checkpoint_is_byte_identical(tmp_path, scene):
     data, truth = scene
     Trainer(data, make_nodes(truth), _cfg(), tmp_path / "full").run()

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # long end-to-end: `pytest -m "not slow"` skips it
+
 REPO = Path(__file__).resolve().parents[2]
 PY = sys.executable
 

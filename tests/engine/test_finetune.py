@@ -58,6 +58,7 @@ def _copy_bundle(src: Path, dst: Path) -> Path:
     return dst
 
 
+@pytest.mark.slow
 def test_finetune_in_place_locks_motion_and_backs_up(trained, tmp_path):
     _, src = trained
     bundle = _copy_bundle(src, tmp_path / "b")
@@ -93,6 +94,7 @@ def test_finetune_in_place_locks_motion_and_backs_up(trained, tmp_path):
     assert rr.returncode == 0, rr.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_finetune_to_new_bundle_leaves_input(trained, tmp_path):
     _, src = trained
     bundle = _copy_bundle(src, tmp_path / "b")
@@ -119,6 +121,7 @@ def test_finetune_bad_input_is_a_clear_error(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+@pytest.mark.slow
 def test_finetune_cancel_changes_nothing(trained, tmp_path):
     import signal
 

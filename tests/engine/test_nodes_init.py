@@ -1,6 +1,7 @@
 """Candidates, track lifting, spline trajectory fit, graph/radii, NodeSet, end-to-end init."""
 
 import numpy as np
+import pytest
 import torch
 
 from engine.geometry.camera import look_at, project
@@ -108,6 +109,7 @@ def test_nodeset_npz_roundtrip():
         assert np.array_equal(back.to_npz_dict()[key], d[key])
 
 
+@pytest.mark.slow
 def test_initialise_nodes_end_to_end_on_bench_scene():
     from engine.bench.nodes import evaluate, make_scene
 

@@ -27,6 +27,7 @@ def _engine(*args, timeout=600):
                           text=True, timeout=timeout)
 
 
+@pytest.mark.slow
 def test_train_command_end_to_end(synth_scene, tmp_path):
     out = tmp_path / "run"
     res = _engine("train", synth_scene, "--out", out, "--steps", "300", "--jsonl")
@@ -60,6 +61,7 @@ def test_init_command_writes_nodes_only(synth_scene, tmp_path):
     assert bundle.nodes.p_dyn is not None
 
 
+@pytest.mark.slow
 def test_motion_init_auto_lifts_tracks_and_rest_overrides(synth_scene, tmp_path):
     """``auto`` starts every node on its lifted tracks (the paper's initialisation), with
     the weight-free depth made constant along moving tracks and with ground-truth depth

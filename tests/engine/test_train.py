@@ -27,6 +27,7 @@ def scene():
     return make_scene()
 
 
+@pytest.mark.slow
 def test_training_improves_held_out_psnr_and_writes_a_bundle(tmp_path, scene):
     data, truth = scene
     trainer = Trainer(data, make_nodes(truth), _cfg(), tmp_path / "run")
@@ -42,6 +43,7 @@ def test_training_improves_held_out_psnr_and_writes_a_bundle(tmp_path, scene):
     assert bundle.scene["config"]["preset"] == "preview"
 
 
+@pytest.mark.slow
 def test_static_nodes_cannot_explain_the_motion(tmp_path, scene):
     """The same run with nodes that never move scores clearly worse on held-out views."""
     data, truth = scene
@@ -70,6 +72,7 @@ def _interrupt_at(trainer, step, how):
     trainer._loss = loss
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how,stopped_at", [("signal", 38), ("exception", 37)])
 def test_resume_reproduces_uninterrupted_run_and_interrupt_leaves_checkpoint(tmp_path, scene, how, stopped_at):
     data, truth = scene
@@ -104,6 +107,7 @@ def test_corrupt_checkpoint_gives_clear_error(tmp_path, scene):
         Trainer(data, make_nodes(truth), _cfg(), tmp_path / "run", resume=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("motion", ["mlp", "per_frame"])
 def test_ablation_motion_models_train(tmp_path, scene, motion):
     data, truth = scene
