@@ -157,6 +157,11 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     pos = {int(i): j for j, i in enumerate(idx)}
     train = np.array(sorted(pos[i] for i in clip.split.get("train", range(clip.num_frames)) if i in pos))
     val = np.array(sorted(pos[i] for i in clip.split.get("val", []) if i in pos), dtype=np.int64)
+    if cfg.holdout > 1:
+        train, withheld = holdout_split(train, clip.times[idx], cfg.holdout)
+        val = np.array(sorted(set(val.tolist()) | set(withheld.tolist())), dtype=np.int64)
+        reporter.log(f"--holdout {cfg.holdout}: {len(withheld)} of {len(withheld) + len(train)} training frames "
+                     "withheld for scoring")
     if len(train) < 2:
         raise InputError(f"only {len(train)} training frame(s) after sub-sampling", clip.source,
                          "use a clip with at least 2 training frames (or raise max_frames)")
@@ -201,6 +206,30 @@ def _camera_solve_record(clip) -> dict | None:
 
     meta = clip.meta if isinstance(clip.meta, dict) else {}
     return summary(meta["solve"]) if "solve" in meta else None
+
+
+def holdout_split(train: np.ndarray, times: np.ndarray, every: int) -> tuple[np.ndarray, np.ndarray]:
+    """Withhold every ``every``-th training frame in time order (the 2nd, the (every+1)-th, ...:
+    never the first or last, so the held-out frames lie inside the trained time range).
+
+    train : int [T] frame indices; times : float [F] every frame's time. Returns the kept and the
+    withheld indices, both sorted.
+    """
+    order = train[np.argsort(times[train], kind="stable")]
+    pos = np.arange(len(order))
+    withheld = (pos % every == 1) & (pos < len(order) - 1)
+    return np.sort(order[~withheld]), np.sort(order[withheld])
+
+
+def still_plate_psnr(frames: np.ndarray, train: np.ndarray, idx: np.ndarray) -> float | None:
+    """Mean PSNR (dB) of the clip's median training frame used as a still plate, against
+    frames ``idx``: what a reconstruction that shows the background and nothing that moves
+    would score. frames uint8 [F, H, W, 3]; None when ``idx`` is empty."""
+    if len(idx) == 0 or len(train) == 0:
+        return None
+    plate = np.median(frames[train].astype(np.float32), axis=0) / 255.0
+    err = ((frames[idx].astype(np.float32) / 255.0 - plate[None]) ** 2).reshape(len(idx), -1).mean(1)
+    return float(np.mean(-10.0 * np.log10(np.maximum(err, 1e-12))))
 
 
 def frame_numbers(clip, times: np.ndarray) -> np.ndarray:
@@ -334,6 +363,10 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
     trainer = Trainer(data, nodes, cfg, out_dir, reporter, resume=resume,
                       scene_extra={"source": {"clip": prep.source, "width": int(prep.frames.shape[2])},
                                    "priors": prep.priors.sources, **_solve_extra(prep)})
+    # the still plate (median training frame) beside every quality figure: a result that
+    # lost everything that moves scores about this
+    trainer.still_plate = {"train": still_plate_psnr(prep.frames, prep.train_idx, prep.train_idx),
+                           "val": still_plate_psnr(prep.frames, prep.train_idx, prep.val_idx)}
     return trainer.run()
 
 

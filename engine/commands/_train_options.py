@@ -22,6 +22,9 @@ def add_clip_options(parser):
                         help="starting node trajectories: splines fitted to lifted 2D tracks, or at rest (default "
                              "auto: tracks when the depth comes from --depth-model/--depth-path, else rest)")
     parser.add_argument("--max-frames", type=int, help="sub-sample the clip to at most this many frames")
+    parser.add_argument("--holdout", type=int, metavar="N",
+                        help="withhold every N-th training frame from training and score it (clips without a "
+                             "held-out camera, e.g. any video); the still plate's PSNR is printed beside it")
     parser.add_argument("--seed", type=int)
     parser.add_argument("--device", choices=("auto", "cpu", "cuda"))
     parser.add_argument("--backend", choices=("auto", "reference", "cpu", "gsplat"), help="rasteriser backend")
@@ -69,7 +72,8 @@ def config_from_args(args):
         # validated on its own first, so its errors name the file and the key
         TrainConfig.from_dict({**PRESETS.get(args.preset, {}), **overrides, "preset": args.preset}, args.config)
     options = {}
-    for key in ("width", "steps", "num_nodes", "num_keys", "init", "motion", "motion_init", "seed", "device", "backend"):
+    for key in ("width", "steps", "num_nodes", "num_keys", "init", "motion", "motion_init", "seed", "device", "backend",
+                "holdout"):
         value = getattr(args, key, None)
         if value is not None:
             options[key] = value

@@ -122,7 +122,7 @@ class OnnxLpips:
 # ----------------------------------------------------------------------------------
 def _open_clip_for(bundle, clip_path):
     from ..errors import InputError
-    from ..pipeline import open_clip
+    from ..io import load_clip
 
     src = bundle.scene.get("source") or {}
     path = clip_path or src.get("clip")
@@ -132,7 +132,8 @@ def _open_clip_for(bundle, clip_path):
     if not Path(path).exists():
         raise InputError("the clip this bundle was trained on is missing (moved or deleted)", path,
                          "pass --clip PATH with the clip's new location")
-    return open_clip(path, solve=False), Path(path)
+    # only the frames (and masks) are read: the cameras are the bundle's, solved or not
+    return load_clip(path), Path(path)
 
 
 def _camera_frame(clip, cam: dict, start: int, path):

@@ -768,6 +768,25 @@ class Trainer:
             res["masked_psnr"] = float(np.mean(mps))
         return res
 
+    def _train_sample(self, at_most: int = 30) -> torch.Tensor:
+        """Up to ``at_most`` training frames spread over the clip (the training-view score)."""
+        idx = self.data.train_idx
+        if len(idx) <= at_most:
+            return idx
+        return idx[torch.linspace(0, len(idx) - 1, at_most).round().long()]
+
+    def _log_quality(self, metrics: dict) -> None:
+        """One line per split: PSNR (masked where a prior exists) beside the still plate's."""
+        plate = metrics.get("still_plate") or {}
+        for key, split, name in (("eval_train", "train", "training frames"), ("eval", "val", "held-out frames")):
+            ev = metrics.get(key) or {}
+            if not ev.get("frames"):
+                continue
+            line = f"{name}: PSNR {ev['psnr']:.2f} dB over {ev['frames']}"
+            if plate.get(split) is not None:
+                line += f" (still plate {plate[split]:.2f} dB, {ev['psnr'] - plate[split]:+.2f})"
+            self.reporter.log(line)
+
     # ---------------------------------------------------------------- export
     def export_bundle(self, metrics: dict | None = None) -> Path:
         m, d = self.model, self.data
@@ -803,8 +822,12 @@ class Trainer:
         initial = self.evaluate() if self.step == 0 else self.initial_eval
         self.initial_eval = initial
         self.train()
-        metrics = {"eval_init": initial, "eval": self.evaluate()}
+        metrics = {"eval_init": initial, "eval": self.evaluate(), "eval_train": self.evaluate(self._train_sample())}
         metrics["iterations_per_s"] = round(self.step / max(self.train_seconds, 1e-9), 3)
+        plate = getattr(self, "still_plate", None)
+        if plate is not None:
+            metrics["still_plate"] = plate
+        self._log_quality(metrics)
         path = self.export_bundle(metrics)
         CK.discard(self.ckpt_path)  # finished: a later --resume must not retrain over the bundle
         return {"bundle": str(path), "steps": self.step, "gaussians": self.model.num_gaussians,
