@@ -33,6 +33,10 @@ COMMANDS = (
 )
 
 
+#: Commands that never import torch (kept fast: the add-on's model manager runs ``models``).
+TORCH_FREE_COMMANDS = ("version", "models")
+
+
 def _common_options() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--jsonl", action="store_true",
@@ -105,9 +109,12 @@ def _run(args, reporter: Reporter) -> int:
         import os
 
         os.environ["MOTION_SPLATS_THREADS"] = str(args.threads)
-        import torch
+    if args.command not in TORCH_FREE_COMMANDS:
+        from .runtime import configure_torch
 
-        torch.set_num_threads(args.threads)  # the CPU rasteriser follows torch's count
+        # process-wide torch state lives here, not in library objects (threads: the CPU
+        # rasteriser follows torch's count; deterministic CPU kernels: bitwise --resume)
+        configure_torch(args.threads, deterministic=True if getattr(args, "device", None) == "cpu" else None)
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     # Cancel sends SIGINT first. A process started with SIGINT ignored (a background job of a
     # non-interactive shell, some launchers) inherits SIG_IGN, and Python then never raises

@@ -28,6 +28,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    from ..runtime import configure_torch
+
+    # process-wide torch state, as `python -m engine` sets it (engine/runtime.py)
+    configure_torch(deterministic=True if getattr(args, "device", None) == "cpu" else None)
     rows = args._module.run(args)
     print_rows(rows, args.json)
     return 0

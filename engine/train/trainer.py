@@ -134,10 +134,8 @@ class Trainer:
         self.scene_extra = scene_extra or {}
         self.device = data.images.device
         torch.manual_seed(self.cfg.seed)
-        if self.device.type == "cpu":
-            # index_put/scatter accumulation is otherwise thread-order dependent; resume
-            # must reproduce an uninterrupted run bit for bit
-            torch.use_deterministic_algorithms(True, warn_only=True)
+        # bitwise resume on the CPU needs deterministic algorithms: a process-wide switch,
+        # set where the process starts (engine/runtime.py), not here
         self.gen = torch.Generator(device="cpu")
         self.gen.manual_seed(self.cfg.seed)
         self.step = 0
