@@ -15,10 +15,22 @@ training run's final evaluation (the trained model itself); ``psnr_bundle`` re-r
 the written bundle from disk (``engine eval``), which for ``mlp`` motion is the exported
 spline approximation of the MLP. ``lpips`` is always null here (no bundled LPIPS model).
 
+Every row also carries the measures that make a lost moving object visible (issue #17):
+``psnr/ssim/masked_psnr/masked_ssim`` with suffix ``_train`` (``engine eval --split train``:
+the bundle at its own training cameras) and ``_val`` (held-out cameras; ``masked_*`` only
+when the scene has dynamic masks), the still-plate baseline of the training frames
+(``plate_psnr``, ``plate_masked_psnr``: the median training frame scored against every
+training frame, :mod:`engine.bench.still_plate`) and, on generated scenes, the node
+trajectories after training vs ground truth (``traj_err_dyn``, ``zero_motion_dyn``,
+``traj_ratio_dyn`` = their ratio, :mod:`engine.bench.node_motion`). ``--kind large``
+generates the large-motion family (60 frames).
+
 ``--train-seeds 0,1,2`` trains every configuration once per training seed and appends a
 ``mean`` row per scene and configuration with ``psnr_std`` (the same configuration spreads
 by ~0.1-0.2 dB over training seeds on the generated scenes, so single-seed differences
-of that size rank nothing). ``--oracle depth,mask,tracks`` trains on the generated scene's
+of that size rank nothing) and ``paired`` rows: for every pair of configurations the mean
+difference of ``masked_psnr_val`` over the (scene, seed) cells, its paired t and p.
+``--oracle depth,mask,tracks`` trains on the generated scene's
 ground-truth priors (:mod:`engine.bench.oracle`) instead of the weight-free ones.
 """
 
@@ -44,6 +56,11 @@ def add_arguments(parser):
     parser.add_argument("--preset", default="small", choices=("tiny", "small"),
                         help="synthetic scene preset when generating (default small)")
     parser.add_argument("--seeds", default="0,1", help="seeds of the generated scenes (default 0,1)")
+    parser.add_argument("--kind", choices=("all", "articulated", "large", "nonrigid", "rigid"),
+                        help="generated scene family (tools/synth_scene.py --kind; default: the generator's own); "
+                             "'large' (objects crossing most of the frame, a fast pendulum) renders 60 frames")
+    parser.add_argument("--frames", type=int, help="frames of generated scenes (default: 60 with --kind large, "
+                                                   "else the preset's)")
     parser.add_argument("--steps", type=int, help="training steps (default: the preview preset's)")
     parser.add_argument("--configs", default=DEFAULT_CONFIGS, help=f"init+motion list (default {DEFAULT_CONFIGS})")
     parser.add_argument("--work", help="folder for generated scenes, priors caches and bundles "
@@ -64,12 +81,14 @@ def add_arguments(parser):
                              "does from what the priors give it")
 
 
-def generate_scene(out: Path, preset: str, seed: int) -> Path:
+def generate_scene(out: Path, preset: str, seed: int, kind: str | None = None, frames: int | None = None) -> Path:
     """Generate (or reuse) a synthetic scene with tools/synth_scene.py."""
     if (out / "dataset.json").is_file():
         return out
     cmd = [sys.executable, str(REPO / "tools" / "synth_scene.py"), "--out", str(out), "--preset", preset,
            "--seed", str(seed), "--quiet"]
+    cmd += ["--kind", kind] if kind else []
+    cmd += ["--frames", str(frames)] if frames else []
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"synth_scene failed ({proc.returncode}): {proc.stderr[-2000:]}")
@@ -111,8 +130,36 @@ def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threa
     return {**result, "wall_s": wall, "peak_rss_mb": rss}
 
 
+def _masked(ev: dict, suffix: str) -> dict:
+    """``psnr/ssim/masked_psnr/masked_ssim`` of an ``engine eval`` mean, keys suffixed."""
+    m = ev.get("mean") or {}
+    return {f"{k}{suffix}": m.get(k) for k in ("psnr", "ssim", "masked_psnr", "masked_ssim")}
+
+
+def scene_baselines(bundle_dir, clip) -> dict:
+    """Per-scene figures that do not depend on the configuration: the still plate of the
+    training frames (:mod:`engine.bench.still_plate`), whole image and masked."""
+    from .still_plate import bundle_split_frames, still_plate_scores
+
+    frames, masks = bundle_split_frames(bundle_dir, "train", clip)
+    s = still_plate_scores(frames, masks)
+    return {"plate_psnr": s["plate_psnr"], "plate_masked_psnr": s["plate_masked_psnr"]}
+
+
+def node_motion(bundle_dir, clip) -> dict:
+    """Node-trajectory error after training (generated scenes with ``gt/trajectories.npz``)."""
+    if not (Path(clip) / "gt" / "trajectories.npz").is_file():
+        return {"traj_err_dyn": None, "zero_motion_dyn": None, "traj_ratio_dyn": None}
+    from .node_motion import trained_trajectory_error
+
+    t = trained_trajectory_error(bundle_dir, clip)
+    return {k: t[k] for k in ("traj_err_dyn", "zero_motion_dyn", "traj_ratio_dyn")}
+
+
 def run_one(clip, name: str, init: str, motion: str, work: Path, steps=None, threads=None, device=None,
-            config=None, priors=None, seed=None) -> dict:
+            config=None, priors=None, seed=None, baselines: dict | None = None) -> dict:
+    """Train one configuration and measure it; ``baselines`` caches :func:`scene_baselines`
+    per scene name (the still plate depends on the scene only)."""
     from ..bundle import read_scene
     from ..commands.eval import evaluate_bundle
 
@@ -125,10 +172,19 @@ def run_one(clip, name: str, init: str, motion: str, work: Path, steps=None, thr
         bundle_eval = json.loads((out / "eval.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         bundle_eval = evaluate_bundle(out, clip, write=True)
+    train_eval = evaluate_bundle(out, clip, split="train", write=False)
+    if baselines is None or name not in baselines:
+        base = scene_baselines(out, clip)
+        if baselines is not None:
+            baselines[name] = base
+    else:
+        base = baselines[name]
     return {"scene": name, "init": init, "motion": motion, **({} if seed is None else {"train_seed": seed}),
             "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": None,
             "psnr_init": ev0.get("psnr"), "ssim_init": ev0.get("ssim"),
             "psnr_bundle": bundle_eval["mean"]["psnr"], "masked_psnr": bundle_eval["mean"]["masked_psnr"],
+            **_masked(train_eval, "_train"), **_masked(bundle_eval, "_val"), **base,
+            **node_motion(out, clip),
             "steps": res.get("steps"), "train_s": stats.get("train_seconds"),
             "its_per_s": res.get("iterations_per_s"), "wall_s": round(res["wall_s"], 1),
             "gaussians": res.get("gaussians"), "nodes": res.get("nodes"),
@@ -146,7 +202,10 @@ def run(args) -> list[dict]:
         scenes = [(Path(s).name, Path(s)) for s in args.scenes]
     else:
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
-        scenes = [(f"{args.preset}_seed{s}", generate_scene(work / f"{args.preset}_seed{s}", args.preset, s))
+        kind = getattr(args, "kind", None)
+        frames = getattr(args, "frames", None) or (60 if kind == "large" else None)
+        tag = args.preset if not kind else f"{kind}_{args.preset}" + (f"_{frames}f" if frames else "")
+        scenes = [(f"{tag}_seed{s}", generate_scene(work / f"{tag}_seed{s}", args.preset, s, kind, frames))
                   for s in seeds]
     oracle = sorted({k.strip() for k in (args.oracle or "").split(",") if k.strip()})
     priors = {}
@@ -161,10 +220,12 @@ def run(args) -> list[dict]:
     seeds = [int(x) for x in args.train_seeds.split(",") if x.strip()] or [None]
     jobs = [(name, clip, init, motion, seed) for name, clip in scenes for init, motion in configs for seed in seeds]
 
+    baselines: dict = {}
+
     def one(job):
         name, clip, init, motion, seed = job
         row = run_one(clip, name, init, motion, work, args.steps, args.threads, args.device, args.config,
-                      priors.get(name), seed)
+                      priors.get(name), seed, baselines)
         print(json.dumps({"progress": row}), file=sys.stderr, flush=True)
         return row
 
@@ -174,7 +235,14 @@ def run(args) -> list[dict]:
         from concurrent.futures import ThreadPoolExecutor  # the runs are subprocesses: threads only wait
         with ThreadPoolExecutor(max_workers=args.jobs) as pool:
             rows = list(pool.map(one, jobs))
-    return rows + (seed_means(rows) if len(seeds) > 1 else [])
+    if len(seeds) > 1:
+        return rows + seed_means(rows) + paired_stats(rows)
+    return rows
+
+
+MEAN_KEYS = ("psnr", "ssim", "psnr_init", "masked_psnr", "psnr_train", "masked_psnr_train", "masked_ssim_train",
+             "masked_psnr_val", "masked_ssim_val", "plate_psnr", "plate_masked_psnr", "traj_err_dyn",
+             "zero_motion_dyn", "traj_ratio_dyn", "train_s", "its_per_s", "nodes")
 
 
 def seed_means(rows: list[dict]) -> list[dict]:
@@ -188,10 +256,47 @@ def seed_means(rows: list[dict]) -> list[dict]:
     out = []
     for (scene, init, motion), rs in groups.items():
         row = {"scene": scene, "init": init, "motion": motion, "train_seed": "mean"}
-        for key in ("psnr", "ssim", "psnr_init", "masked_psnr", "train_s", "its_per_s", "nodes"):
+        for key in MEAN_KEYS:
             vals = [r[key] for r in rs if isinstance(r.get(key), (int, float))]
             row[key] = statistics.fmean(vals) if vals else None
         ps = [r["psnr"] for r in rs if isinstance(r.get("psnr"), (int, float))]
         row["psnr_std"] = statistics.stdev(ps) if len(ps) > 1 else None
+        mv = [r["masked_psnr_val"] for r in rs if isinstance(r.get("masked_psnr_val"), (int, float))]
+        row["masked_psnr_val_std"] = statistics.stdev(mv) if len(mv) > 1 else None
         out.append(row)
+    return out
+
+
+def paired_stats(rows: list[dict], metric: str = "masked_psnr_val") -> list[dict]:
+    """Paired comparison of configurations over (scene, training seed) on ``metric``.
+
+    For every pair of configurations (in first-seen order), the differences ``b − a`` over
+    the (scene, train_seed) cells both ran give ``mean_diff``, ``sd_diff`` (ddof 1) and the
+    paired ``t = mean_diff / (sd_diff / sqrt(n))`` with its two-sided ``p`` (Student t,
+    n − 1 degrees of freedom; None when n < 2 or the differences do not vary).
+    """
+    import itertools
+    import math
+    import statistics
+
+    cells: dict[tuple, dict] = {}
+    for r in rows:
+        if r.get("train_seed") == "mean" or not isinstance(r.get(metric), (int, float)):
+            continue
+        cells.setdefault((r["init"], r["motion"]), {})[(r["scene"], r.get("train_seed"))] = r[metric]
+    out = []
+    for a, b in itertools.combinations(list(cells), 2):
+        keys = sorted(set(cells[a]) & set(cells[b]), key=str)
+        d = [cells[b][k] - cells[a][k] for k in keys]
+        n = len(d)
+        mean = statistics.fmean(d) if d else None
+        sd = statistics.stdev(d) if n > 1 else None
+        t = p = None
+        if sd:
+            t = mean / (sd / math.sqrt(n))
+            from scipy.stats import t as student_t
+
+            p = float(2 * student_t.sf(abs(t), n - 1))
+        out.append({"scene": "paired", "a": "+".join(a), "b": "+".join(b), "metric": metric, "n": n,
+                    "mean_diff": mean, "sd_diff": sd, "t": t, "p": p})
     return out

@@ -1,0 +1,88 @@
+"""Node motion after training: a trained bundle's node splines vs a generated scene's GT.
+
+``engine.bench nodes`` measures the *initial* nodes; this module measures what training
+left in ``nodes.npz`` (what Blender keys as F-curves). For every training camera of the
+bundle the node splines are evaluated at the camera's time and compared with the GT
+trajectories (``gt/trajectories.npz``) at that frame, by the same RBF-blended displacement
+protocol as :func:`engine.bench.nodes.evaluate_gt` (K=4 nearest nodes at reference frames
+first / middle / last). ``traj_ratio_dyn = traj_err_dyn / zero_motion_dyn``: 1 for nodes
+that do not move, 0 for nodes that follow the ground truth; < 0.5 is "2x closer than zero
+motion".
+"""
+
+from __future__ import annotations
+
+import types
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .nodes import _rbf_deform_error, _zero_motion_error
+
+
+def _torch_nodes(nodes) -> types.SimpleNamespace:
+    """The spline fields of a ``bundle.NodeArrays`` as float32 tensors (what the error needs)."""
+    as_t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    return types.SimpleNamespace(key_times=as_t(nodes.key_times), pos_keys=as_t(nodes.pos_keys),
+                                 pos_tangents=as_t(nodes.pos_tangents), radii=as_t(nodes.radii))
+
+
+def trajectory_error(nodes, points: np.ndarray, times: np.ndarray, dynamic: np.ndarray) -> dict:
+    """Node-predicted vs GT trajectory error of the dynamic points, and the zero-motion baseline.
+
+    Parameters
+    ----------
+    nodes : ``bundle.NodeArrays`` (numpy splines: key_times (K,), pos_keys/pos_tangents
+        (N, K, 3), radii (N,)).
+    points : (M, F, 3) GT world positions at the F evaluated frames.
+    times : (F,) engine times of those frames.
+    dynamic : (M,) bool, the points on moving objects.
+
+    Returns
+    -------
+    dict: ``traj_err_dyn`` / ``zero_motion_dyn`` (fractions of the scene extent, the
+    diagonal of the GT points' bounding box), ``traj_ratio_dyn``, ``*_abs`` in scene units.
+    """
+    pts = np.asarray(points, np.float32)
+    dyn = np.asarray(dynamic, bool)
+    if not dyn.any():
+        raise ValueError("the ground truth has no dynamic points")
+    err = _rbf_deform_error(_torch_nodes(nodes), pts[dyn], np.asarray(times, np.float32))
+    zero = _zero_motion_error(pts[dyn])
+    flat = pts.reshape(-1, 3)
+    ext = float(np.linalg.norm(flat.max(0) - flat.min(0)))
+    e, z = float(err.mean()), float(zero.mean())
+    return {"traj_err_dyn": e / ext, "zero_motion_dyn": z / ext, "traj_ratio_dyn": e / z if z > 0 else None,
+            "traj_err_dyn_abs": e, "zero_motion_dyn_abs": z}
+
+
+def bundle_train_gt(bundle, scene_dir) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(points (M, F, 3), times (F,), dynamic (M,))``: the GT at a bundle's training cameras.
+
+    A camera's clip frame (``clip_index``, else frame number − start) names a ``left_NNNNNN``
+    frame of the generated scene, whose number indexes ``gt/trajectories.npz``.
+    """
+    from ..io import load_clip
+
+    clip = load_clip(scene_dir)
+    start = int(clip.meta.get("frame_start", 1)) if isinstance(clip.meta, dict) else 1
+    cams = [c for c in bundle.scene["cameras"] if c.get("split", "train") == "train"]
+    idx, times = [], []
+    for c in cams:
+        i = int(c["clip_index"]) if "clip_index" in c else int(c["frame"]) - start
+        idx.append(int(str(clip.frame_ids[i]).rsplit("_", 1)[1]))
+        times.append(float(c["time"]))
+    with np.load(Path(scene_dir) / "gt" / "trajectories.npz", allow_pickle=False) as traj:
+        points, dynamic = traj["points"][:, idx], traj["is_dynamic"].astype(bool)
+    return points, np.asarray(times, np.float32), dynamic
+
+
+def trained_trajectory_error(bundle_dir, scene_dir) -> dict:
+    """:func:`trajectory_error` of the bundle's ``nodes.npz`` at its training cameras."""
+    from ..bundle import load_bundle
+
+    bundle = load_bundle(bundle_dir)
+    if bundle.nodes is None:
+        raise ValueError(f"{bundle_dir} has no nodes.npz")
+    return trajectory_error(bundle.nodes, *bundle_train_gt(bundle, scene_dir))

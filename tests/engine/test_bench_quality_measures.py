@@ -1,0 +1,121 @@
+"""The measures `engine.bench quality` adds for moving objects (issue #17): the still-plate
+baseline, node trajectories after training vs ground truth, paired statistics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from engine.bench.node_motion import trajectory_error
+from engine.bench.quality import paired_stats
+from engine.bench.still_plate import still_plate, still_plate_scores
+from engine.bundle import NodeArrays
+
+
+def _textured(h=48, w=64, seed=0):
+    return np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+
+
+def _moving_square(frames=12, h=48, w=64, size=10):
+    """A textured static background with a white square sliding left to right."""
+    bg = _textured(h, w)
+    imgs, masks = [], []
+    for f in range(frames):
+        x = int(round(f * (w - size) / (frames - 1)))
+        img, m = bg.copy(), np.zeros((h, w), bool)
+        img[18:18 + size, x:x + size] = 255
+        m[18:18 + size, x:x + size] = True
+        imgs.append(img)
+        masks.append(m)
+    return np.stack(imgs), np.stack(masks), bg
+
+
+def test_still_plate_of_a_static_clip_is_the_frame_and_scores_perfect():
+    frames = np.stack([_textured()] * 5)
+    assert np.array_equal(still_plate(frames), frames[0])
+    s = still_plate_scores(frames)
+    assert s["plate_psnr"] >= 119.0 and s["plate_masked_psnr"] is None and s["frames"] == 5
+
+
+def test_still_plate_recovers_the_background_and_fails_on_the_moving_region():
+    frames, masks, bg = _moving_square()
+    # the square covers each pixel in at most 2 of 12 frames: the median is the background
+    assert np.array_equal(still_plate(frames), bg)
+    s = still_plate_scores(frames, masks)
+    # inside the mask the plate shows the background where the frame shows white: bad; the
+    # whole image differs only there, so it scores 10·log10(area ratio) higher
+    assert s["plate_masked_psnr"] < 10.0
+    assert s["plate_psnr"] == pytest.approx(s["plate_masked_psnr"] + 10 * np.log10(48 * 64 / 100), abs=0.5)
+    expect = np.mean([-10 * np.log10((((255 - bg.astype(float)) / 255) ** 2)[m].mean()) for m in masks])
+    assert s["plate_masked_psnr"] == pytest.approx(expect, rel=1e-9)
+
+
+def test_still_plate_refuses_mismatched_masks():
+    frames, masks, _ = _moving_square()
+    with pytest.raises(ValueError, match="masks"):
+        still_plate_scores(frames, masks[:, :10])
+
+
+def _scene(frames=9, seed=0):
+    """GT: a static slab and a moving blob (translation + a little rotation over time)."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0, 1, frames).astype(np.float32)
+    static = np.concatenate([rng.uniform(-2, 2, (300, 2)), np.full((300, 1), -2.0)], 1)  # far below the blob
+    blob = rng.normal(0, 0.15, (200, 3)) + [0, 0, 0.5]
+    path = np.stack([1.5 * np.sin(np.pi * t), 0.8 * t, 0.1 * t], 1)  # (F, 3)
+    pts = np.concatenate([np.repeat(static[:, None], frames, 1), blob[:, None] + path[None]], 0)
+    dyn = np.r_[np.zeros(300, bool), np.ones(200, bool)]
+    return pts.astype(np.float32), t, dyn, path
+
+
+def _nodes(centres, path_per_node, key_times):
+    """NodeArrays whose splines pass through ``path_per_node`` (N, K, 3) at ``key_times``."""
+    from engine.geometry.hermite import catmull_rom_tangents
+    import torch
+
+    kt = torch.as_tensor(key_times)
+    keys = torch.as_tensor(path_per_node, dtype=torch.float32)
+    tan = catmull_rom_tangents(kt, keys).numpy()
+    n, k = keys.shape[:2]
+    quat = np.zeros((n, k, 4), np.float32)
+    quat[..., 0] = 1
+    return NodeArrays(centers=centres.astype(np.float32), radii=np.full(n, 0.3, np.float32), key_times=key_times,
+                      pos_keys=keys.numpy(), pos_tangents=tan.astype(np.float32), rot_keys=quat,
+                      rot_tangents=np.zeros_like(quat))
+
+
+def test_nodes_moved_along_the_ground_truth_score_near_zero_and_frozen_nodes_score_zero_motion():
+    pts, t, dyn, path = _scene()
+    rng = np.random.default_rng(1)
+    stat_c = np.concatenate([rng.uniform(-2, 2, (40, 2)), np.full((40, 1), -2.0)], 1)
+    blob_c = rng.normal(0, 0.15, (12, 3)) + [0, 0, 0.5]
+    centres = np.concatenate([stat_c, blob_c + path[0]]).astype(np.float32)
+    # keys at every frame: the spline interpolates the GT path exactly at the frame times
+    follow = np.concatenate([np.repeat(stat_c[:, None], len(t), 1), blob_c[:, None] + path[None]], 0)
+    good = trajectory_error(_nodes(centres, follow, t), pts, t, dyn)
+    frozen = trajectory_error(_nodes(centres, np.repeat(centres[:, None], len(t), 1), t), pts, t, dyn)
+    assert good["traj_err_dyn"] < 1e-4 and good["traj_ratio_dyn"] < 1e-3
+    assert frozen["traj_ratio_dyn"] == pytest.approx(1.0, abs=1e-5)
+    assert frozen["traj_err_dyn"] == pytest.approx(frozen["zero_motion_dyn"], rel=1e-5)
+    assert good["zero_motion_dyn"] == pytest.approx(frozen["zero_motion_dyn"]) and good["zero_motion_dyn"] > 0.05
+    # half the motion: half the error of zero motion, ratio ~0.5 (the blend is linear in displacement)
+    half = np.concatenate([np.repeat(stat_c[:, None], len(t), 1), blob_c[:, None] + (path[0] + 0.5 * (path - path[0]))[None]], 0)
+    h = trajectory_error(_nodes(centres, half, t), pts, t, dyn)
+    assert 0.4 < h["traj_ratio_dyn"] < 0.6
+
+
+def test_paired_stats_mean_difference_and_t():
+    rows = []
+    for scene in ("a", "b"):
+        for seed, base in ((0, 20.0), (1, 21.0), (2, 19.0)):
+            d = {"a": 1.0, "b": 2.0}[scene] + 0.1 * seed
+            rows.append({"scene": scene, "init": "mani", "motion": "spline", "train_seed": seed, "masked_psnr_val": base})
+            rows.append({"scene": scene, "init": "fps", "motion": "mlp", "train_seed": seed,
+                         "masked_psnr_val": base + d})
+    rows.append({"scene": "a", "init": "mani", "motion": "spline", "train_seed": "mean", "masked_psnr_val": 99.0})
+    (p,) = paired_stats(rows)
+    diffs = np.array([1.0, 1.1, 1.2, 2.0, 2.1, 2.2])
+    assert (p["a"], p["b"], p["n"]) == ("mani+spline", "fps+mlp", 6)
+    assert p["mean_diff"] == pytest.approx(diffs.mean())
+    assert p["t"] == pytest.approx(diffs.mean() / (diffs.std(ddof=1) / np.sqrt(6)))
+    assert 0 < p["p"] < 0.01
