@@ -6,8 +6,10 @@ with OpenCV):
 
 * training loss / PSNR curves from ``scene.json`` ``stats.history``;
 * held-out renders next to the ground truth (needs the clip; see ``engine eval``);
-* a node allocation overlay: node positions at one frame's time projected into that
-  frame, coloured by ``p_dyn`` (blue = static, red = dynamic);
+* a contact sheet of training frames spread over the clip (ground truth | render |
+  |error|) and the node allocation overlay (node positions projected into their frame,
+  coloured by ``p_dyn``: blue = static, red = dynamic) at several times
+  (:mod:`engine.report_frames`);
 * metrics (initial vs final held-out eval from ``stats``, plus ``engine eval`` results);
 * the camera path and, for a solved clip, the camera model chosen and why
   (:mod:`engine.report_camera`);
@@ -104,8 +106,6 @@ def write_report(bundle_dir, out_html=None, eval_result=None, clip_path=None, de
     raster ``backend`` (``engine train`` passes its own, so a ``--device cpu`` run never
     touches a GPU).
     """
-    import torch
-
     from . import bundle as B
     from .errors import InputError
 
@@ -171,21 +171,11 @@ def write_report(bundle_dir, out_html=None, eval_result=None, clip_path=None, de
         parts.append(f'<figure><img src="val_{frame:05d}_render.png"><img src="val_{frame:05d}_gt.png">'
                      f"<figcaption>{html.escape(cap)}</figcaption></figure>")
 
-    # node overlay on one training frame
-    parts.append("<h2>Node allocation</h2>")
-    cams = [c for c in scene["cameras"] if c.get("split", "train") == "train"] or scene["cameras"]
-    if bundle.nodes is not None and cams:
-        cam = cams[len(cams) // 2]
-        base = _frame_image(bundle, cam, clip_path)
-        if base is None:
-            base = np.full((int(cam["height"]), int(cam["width"]), 3), 40, np.uint8)
-            notes.append("node overlay drawn on a blank frame (clip not available)")
-        pos = _node_positions(bundle, float(cam["time"]), torch)
-        ov = node_overlay(base, cam["K"], cam["w2c"], pos, bundle.nodes.p_dyn)
-        _imwrite(folder / "nodes_overlay.png", ov)
-        parts.append(f'<figure><img src="nodes_overlay.png"><figcaption>{bundle.nodes.count} nodes at frame '
-                     f'{cam["frame"]} (time {cam["time"]:.3f}); colour = p_dyn (blue static → red dynamic)'
-                     "</figcaption></figure>")
+    # training frames: contact sheet + node overlay at several times (engine/report_frames.py)
+    from .report_frames import contact_sheet_section, node_overlay_section
+
+    parts.append(contact_sheet_section(bundle, folder, clip_path, device, backend, notes))
+    parts.append(node_overlay_section(bundle, folder, clip_path, notes))
 
     # priors: which model (name + SHA-256) or weight-free backend produced each (engine/models)
     parts.append("<h2>Priors</h2>")
@@ -206,7 +196,8 @@ def write_report(bundle_dir, out_html=None, eval_result=None, clip_path=None, de
 
     style = ("body{font-family:sans-serif;margin:24px;max-width:1100px}table{border-collapse:collapse;margin:8px 0}"
              "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px;text-align:left}"
-             "img{image-rendering:pixelated;width:360px;margin-right:6px}figure{margin:10px 0}"
+             "img{image-rendering:pixelated;width:360px;margin-right:6px}img.sheet{width:auto;max-width:100%}"
+             "figure{margin:10px 0}"
              "svg.chart{margin-right:12px}")
     doc = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>Motion Splats report</title>"
            f"<style>{style}</style></head><body>{''.join(parts)}</body></html>\n")
