@@ -1,6 +1,7 @@
 """Checkpoint identity, finished runs and byte-exact resume from a periodic checkpoint."""
 
 import pickle
+import shutil
 
 import pytest
 import torch
@@ -72,14 +73,21 @@ def test_finished_run_drops_its_checkpoint_and_refuses_resume(tmp_path, scene):
     B.check_output_dir(tmp_path / "run", overwrite=True, resume=True)  # --overwrite still may
 
 
-@pytest.fixture
-def interrupted(tmp_path, scene):
-    """A run stopped at step 25 by a kill: its checkpoint is on disk."""
+@pytest.fixture(scope="module")
+def _killed_run(tmp_path_factory, scene):
     data, truth = scene
-    t = Trainer(data, make_nodes(truth), _cfg(), tmp_path / "run")
+    run = tmp_path_factory.mktemp("killed") / "run"
+    t = Trainer(data, make_nodes(truth), _cfg(), run)
     _die_at(t, 30)
     with pytest.raises(_Killed):
         t.train()
+    return run
+
+
+@pytest.fixture
+def interrupted(tmp_path, _killed_run):
+    """A run stopped at step 30 by a kill: its step-25 checkpoint is on disk (a fresh copy per test)."""
+    shutil.copytree(_killed_run, tmp_path / "run")
     return tmp_path / "run"
 
 
