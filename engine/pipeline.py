@@ -64,6 +64,9 @@ def load_frames_at_width(clip, width: int, reporter: Reporter | None = None, max
     idx = np.arange(clip.num_frames)
     if max_frames and clip.num_frames > max_frames:
         idx = np.unique(np.linspace(0, clip.num_frames - 1, max_frames).round().astype(int))
+    if reporter is not None and int(width) > clip.width:  # say so: the config asked for more than the clip has
+        reporter.log(f"training width {int(width)} px is wider than the clip ({clip.width} px); training at "
+                     f"{clip.width} px", "warning")
     width = min(int(width), clip.width)
     height = max(1, int(round(clip.height * width / clip.width)))
     frames = np.empty((len(idx), height, width, 3), np.uint8)

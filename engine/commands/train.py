@@ -31,7 +31,7 @@ def run(args, reporter):
         result = reconstruct(args.clip, args.out, cfg, reporter, resume=args.resume, overwrite=args.overwrite,
                              cache_dir=args.cache, prior_config=prior_config_from_args(args),
                              clip_options=clip_options(args))
-    result["report"] = _write_report(result.get("bundle", args.out), reporter, cfg.device, cfg.backend)
+        result["report"] = _write_report(result.get("bundle", args.out), reporter, cfg.device, cfg.backend)
     reporter.result(**result)
     return 0
 

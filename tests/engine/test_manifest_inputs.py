@@ -25,3 +25,13 @@ def test_clip_source_is_absolute(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     clip = load_clip("m/clip.json")
     assert clip.source == (tmp_path / "m" / "clip.json").resolve() and clip.source.is_absolute()
+
+
+def test_training_width_beyond_the_clip_is_said(tmp_path, capsys):
+    from engine.pipeline import load_frames_at_width
+    from engine.protocol import Reporter
+
+    clip = load_clip(fx.manifest(tmp_path / "m"))
+    frames, _, _ = load_frames_at_width(clip, 500, Reporter(jsonl=True))
+    assert frames.shape[2] == fx.W
+    assert "wider than the clip (64 px)" in capsys.readouterr().out
