@@ -28,8 +28,9 @@ generates the large-motion family (60 frames).
 ``--train-seeds 0,1,2`` trains every configuration once per training seed and appends a
 ``mean`` row per scene and configuration with ``psnr_std`` (the same configuration spreads
 by ~0.1-0.2 dB over training seeds on the generated scenes, so single-seed differences
-of that size rank nothing) and ``paired`` rows: for every pair of configurations the mean
-difference of ``masked_psnr_val`` over the (scene, seed) cells, its paired t and p.
+of that size rank nothing). With two configurations or more and two (scene, seed) cells or
+more, ``paired`` rows follow: for every pair of configurations the mean difference of
+``masked_psnr_val`` over the cells both ran (scenes x training seeds), its paired t and p.
 ``--oracle depth,mask,tracks`` trains on the generated scene's
 ground-truth priors (:mod:`engine.bench.oracle`) instead of the weight-free ones.
 """
@@ -235,9 +236,9 @@ def run(args) -> list[dict]:
         from concurrent.futures import ThreadPoolExecutor  # the runs are subprocesses: threads only wait
         with ThreadPoolExecutor(max_workers=args.jobs) as pool:
             rows = list(pool.map(one, jobs))
-    if len(seeds) > 1:
-        return rows + seed_means(rows) + paired_stats(rows)
-    return rows
+    # paired rows whenever two configurations share at least two (scene, seed) cells
+    paired = paired_stats(rows) if len(configs) > 1 and len(scenes) * len(seeds) > 1 else []
+    return rows + (seed_means(rows) if len(seeds) > 1 else []) + paired
 
 
 MEAN_KEYS = ("psnr", "ssim", "psnr_init", "masked_psnr", "psnr_train", "masked_psnr_train", "masked_ssim_train",
