@@ -95,10 +95,13 @@ def test_bench_rows(scene):
     assert groups["depth"]["absrel_static"] < 1.0
     for k in ("iou", "precision", "recall"):
         assert 0.0 <= groups["dynamic"][k] <= 1.0
-    # tiny (96x72, ~10 px of camera motion per frame) is a smoke test: the motion mask
-    # misses most moving pixels there, so only ranges are checked (small: see docs/benchmarks.md)
+    # tiny (96x72, ~10 px of camera motion per frame): the motion mask misses most moving
+    # pixels there (small: see docs/benchmarks.md), so its figures get ranges only; the
+    # tracks are measured against the scene's ground truth: sub-2-px median end-point error
+    # (0.85 px measured at 2026-11-25 with DIS flow) and most matched points within 2 px
     assert groups["tracks"]["tracks"] > 0 and groups["tracks"]["pairs"] > 0
-    assert 0.0 <= groups["tracks"]["survival"] <= 1.0 and groups["tracks"]["epe_median"] < 20
+    assert 0.0 <= groups["tracks"]["survival"] <= 1.0
+    assert groups["tracks"]["epe_median"] < 2.0 and groups["tracks"]["within_2px"] > 0.5
 
 
 @pytest.mark.slow
