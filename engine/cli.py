@@ -131,7 +131,9 @@ def _run(args, reporter: Reporter) -> int:
         reporter.error(message, path=path, fix=fix)
         return 2
     except KeyboardInterrupt:
-        reporter.error("interrupted; state saved where the command supports it", fix="re-run with --resume")
+        resumable = args.command == "train"  # the only command with --resume
+        reporter.error("interrupted; state saved where the command supports it",
+                       fix="re-run with --resume" if resumable else "run the command again")
         return 130
     except Exception as exc:  # report, then let the traceback reach stderr for bug reports
         reporter.error(f"internal error: {type(exc).__name__}: {exc}")

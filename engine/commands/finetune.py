@@ -248,20 +248,31 @@ def write_finetuned(bundle, model, summary: dict, out=None, overwrite: bool = Fa
 
 
 def run(args, reporter):
-    import torch
-
     from .. import bundle as B
-    from ..errors import Cancelled, InputError
-    from ..train.config import TrainConfig
-    from ..train.model import model_from_bundle
-    from ._common import pick_device
+    from ..errors import InputError
+    from ..lock import hold
 
     if args.steps < 1:
         raise InputError(f"--steps must be at least 1 (got {args.steps})", None, "e.g. --steps 200")
     if args.no_backup and args.out:
         raise InputError("--no-backup only applies to in-place updates", None, "drop --no-backup when using --out")
     if args.out is not None:  # refuse early, before minutes of work
-        B.check_output_dir(args.out, overwrite=args.overwrite)
+        B.check_output_dir(args.out, overwrite=args.overwrite, resumable=False)
+    if not Path(args.bundle).is_dir():
+        raise InputError("bundle folder not found", args.bundle, "pass the folder given to `engine train --out`")
+    with hold(args.out or args.bundle):  # one writer: no train or other fine-tune in the same folder
+        return _finetune(args, reporter)
+
+
+def _finetune(args, reporter):
+    import torch
+
+    from .. import bundle as B
+    from ..errors import Cancelled
+    from ..train.config import TrainConfig
+    from ..train.model import model_from_bundle
+    from ._common import pick_device
+
     bundle = B.load_bundle(args.bundle)
     device = pick_device(args.device)
     torch.manual_seed(args.seed)

@@ -82,3 +82,25 @@ def test_atomic_writes_respect_the_umask(tmp_path):
     fsutil.atomic_write_json(path, {"a": 1})
     mode = stat.S_IMODE(path.stat().st_mode)
     assert mode == 0o666 & ~fsutil._UMASK  # not mkstemp's 0600 (unless the umask itself says so)
+
+
+def test_finetune_refuses_a_bundle_another_command_writes(tmp_path, capsys):
+    b = fx.bundle(tmp_path / "b")
+    _lock_of(b, os.getppid())
+    before = (b / "gaussians.ply").read_bytes()
+    code = main(["finetune", str(b), "--steps", "1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "another engine command" in err[0]
+    assert (b / "gaussians.ply").read_bytes() == before and not (b / "backups").exists()
+
+
+def test_interrupted_render_does_not_suggest_resume(tmp_path, capsys, monkeypatch):
+    import engine.commands.render as render
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(render, "cameras_for_frames", interrupted)
+    code = main(["render", str(fx.bundle(tmp_path / "b")), "--out", str(tmp_path / "r"), "--jsonl"])
+    event = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 130 and event["event"] == "error" and event["fix"] == "run the command again"
