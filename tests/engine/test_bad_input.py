@@ -80,6 +80,15 @@ def _overwrite_missing_clip(t):
     return ["train", str(t / "missing"), "--out", str(b), "--overwrite"]
 
 
+def _n3dv(t, shape, value=0.0):
+    root = t / "n3dv"
+    root.mkdir()
+    np.save(root / "poses_bounds.npy", np.full(shape, value))
+    for i in range(shape[0]):
+        fx.video(root / f"cam{i:02d}.mp4")
+    return root
+
+
 def _overwrite_bad_clip(t):
     argv = _overwrite_missing_clip(t)
     argv[1] = str(fx.manifest(t / "m", fps=-1))
@@ -202,6 +211,8 @@ CASES = {
     "nerfies camera focal string": (_nerfies(lambda r: fx.edit_json(r / "camera" / "left_000000.json",
                                                                     lambda c: c.update(focal_length="f"))),
                                     "left_000000.json"),
+    "n3dv poses wrong shape": (lambda t: _train(t, _n3dv(t, (4, 7))), "poses_bounds.npy"),
+    "n3dv poses NaN": (lambda t: _train(t, _n3dv(t, (2, 17), np.nan)), "poses_bounds.npy"),
     "colmap 4-byte points3D.bin": (lambda t: _train(t, fx.colmap(t / "c")), "points3D.bin"),
     "nerfies scene.json list": (_nerfies(lambda r: (r / "scene.json").write_text("[1]")), "scene.json"),
     # ------------------------------------------------------------- configs and options
