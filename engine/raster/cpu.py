@@ -4,9 +4,11 @@ Two Functions, like gsplat: :class:`ProjectCPU` (3D -> 2D) and :class:`Rasterize
 (2D -> image). ``means2d`` is a real intermediate tensor, so training can call
 ``means2d.retain_grad()`` and read the 2D-mean gradient for densification.
 
-Threads: Numba runs with ``torch.get_num_threads()`` threads and torch is set to one thread
-while a kernel runs, because torch's OpenMP pool and Numba's pool stall each other when
-both are busy (measured on the 2-core machine).
+Threads: Numba runs with ``torch.get_num_threads()`` threads (the process's count, set once
+where it starts: ``engine/runtime.py``). Torch's own thread count is never changed here: it
+used to be dropped to one around every kernel because torch's spinning OpenMP pool stalled
+Numba's, which ``OMP_WAIT_POLICY=PASSIVE`` (``engine/__main__.py``, the benches) settles;
+an A/B of the train bench found the same CPU time per step either way (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -23,16 +25,12 @@ from .reference import EPS2D
 
 @contextlib.contextmanager
 def kernel_threads():
-    """Run Numba with torch's thread count while torch itself uses one thread."""
+    """Run the Numba kernels inside with torch's thread count (``numba.set_num_threads``
+    applies to the calling thread only; no process-wide state changes)."""
     import numba
 
-    n = torch.get_num_threads()
-    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    yield
 
 
 def _np(t: torch.Tensor) -> np.ndarray:

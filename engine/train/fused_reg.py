@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ..raster.cpu import kernel_threads  # Numba at torch's thread count, torch at one
+from ..raster.cpu import kernel_threads  # Numba at torch's thread count
 from .fused import _f32  # float32 C-contiguous NumPy view (no copy for float32 tensors)
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ..raster.cpu import kernel_threads  # Numba at torch's thread count, torch at one
+from ..raster.cpu import kernel_threads  # Numba at torch's thread count
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 C1, C2 = 0.01 ** 2, 0.03 ** 2

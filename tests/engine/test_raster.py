@@ -319,17 +319,21 @@ def test_zero_opacity_scene(backend):
         assert torch.count_nonzero(grads[name]) == 0, name
 
 
-def test_backend_selection_and_threads():
+def test_backend_selection_and_threads(monkeypatch):
     assert select_backend("auto", torch.device("cpu")) == "cpu"
     assert select_backend("reference", torch.device("cpu")) == "reference"
     with pytest.raises(ValueError):
         select_backend("opengl", torch.device("cpu"))
     expected = "gsplat" if api.gsplat_available() else "reference"
     assert select_backend("auto", torch.device("cuda")) == expected
+    # a render (forward and backward) leaves torch's process-wide thread count alone: it is
+    # set once where the process starts (engine/runtime.py), never per render (#19)
+    calls = []
+    monkeypatch.setattr(torch, "set_num_threads", lambda k: calls.append(k))
     n = torch.get_num_threads()
     scene = _scene(n=30, seed=6)
     _run("auto", scene, torch.float32)
-    assert torch.get_num_threads() == n  # kernels run torch at 1 thread, then restore
+    assert calls == [] and torch.get_num_threads() == n
 
 
 def test_scales_from_log_and_input_checks():
