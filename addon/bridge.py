@@ -6,7 +6,9 @@ Blender. :class:`EngineProcess` starts a command with ``subprocess.Popen`` (argu
 never ``shell=True``) in a new process group, reads stdout on a thread (each line is
 validated with :func:`engine.protocol.parse_event`; anything else is kept as log text),
 keeps the last stderr lines in a ring buffer, and hands events to the UI through
-:meth:`EngineProcess.poll_events`. :meth:`EngineProcess.cancel` escalates
+:meth:`EngineProcess.poll_events` (optionally a capped batch: the rest stays queued,
+:attr:`EngineProcess.pending_events`). :attr:`EngineProcess.last_output` is when the last
+line arrived (the add-on's no-output watchdog). :meth:`EngineProcess.cancel` escalates
 SIGINT -> SIGTERM -> SIGKILL on a background thread and returns at once.
 """
 
@@ -114,7 +116,10 @@ class EngineProcess:
         self._proc: subprocess.Popen | None = None
         self._threads: list[threading.Thread] = []
         self._cancel_requested = False
+        self._stop_reason: str | None = None  # why the add-on (not the user) stopped the run
         self._cancel_thread: threading.Thread | None = None
+        #: monotonic time the last stdout or stderr line arrived (the start time before any)
+        self.last_output: float | None = None
         self._exited_at: float | None = None
         self._lock = threading.Lock()
 
@@ -150,6 +155,7 @@ class EngineProcess:
             self.ended_at = time.monotonic()
             return self
         self._state = "running"
+        self.last_output = time.monotonic()
         self._threads = [
             threading.Thread(target=self._read_stdout, name="motion-splats-stdout", daemon=True),
             threading.Thread(target=self._read_stderr, name="motion-splats-stderr", daemon=True),
@@ -191,21 +197,33 @@ class EngineProcess:
     def cancel_requested(self) -> bool:
         return self._cancel_requested
 
-    def poll_events(self) -> list[dict]:
-        """Events read since the last call, in order (never blocks)."""
-        out = []
-        while True:
-            try:
-                out.append(self._events.get_nowait())
-            except queue.Empty:
-                break
+    @property
+    def pending_events(self) -> int:
+        """Events read but not yet handed out by :meth:`poll_events`."""
+        return self._events.qsize()
+
+    def poll_events(self, max_events: int | None = None) -> list[dict]:
+        """Events read since the last call, in order (never blocks).
+
+        With ``max_events`` at most that many; the rest stay queued for the next call
+        (:attr:`pending_events`), so nothing is ever dropped. Note that :attr:`state` may
+        already be final while events are still queued: a caller that caps the batch must
+        keep polling until :attr:`pending_events` is 0 (``addon.jobs.drain`` does).
+        """
+        out: list[dict] = []
+        limit = None if max_events is None else max(int(max_events), 0)
+
+        def take():
+            while limit is None or len(out) < limit:
+                try:
+                    out.append(self._events.get_nowait())
+                except queue.Empty:
+                    return
+
+        take()
         self._update()
         # Events that arrived while we updated the state belong to this batch too.
-        while True:
-            try:
-                out.append(self._events.get_nowait())
-            except queue.Empty:
-                break
+        take()
         return out
 
     def wait(self, timeout: float | None = None) -> str:
@@ -217,13 +235,18 @@ class EngineProcess:
             time.sleep(0.02)
         return self._state
 
-    def cancel(self, timeout: float = 5.0) -> None:
+    def cancel(self, timeout: float = 5.0, reason: str | None = None) -> None:
         """Ask the engine to stop: SIGINT (it checkpoints), SIGTERM after ``timeout``/2,
-        SIGKILL after ``timeout``. Returns at once; escalation runs on a thread."""
+        SIGKILL after ``timeout``. Returns at once; escalation runs on a thread.
+
+        ``reason``: the add-on stops the run itself (the no-output watchdog of
+        ``addon.jobs``); the run then ends 'failed' with ``reason`` as its first error
+        line instead of 'cancelled'."""
         with self._lock:
             if self._proc is None or self._cancel_requested or self._proc.poll() is not None:
                 return
             self._cancel_requested = True
+            self._stop_reason = reason
             self._cancel_thread = threading.Thread(target=self._escalate, args=(float(timeout),),
                                                    name="motion-splats-cancel", daemon=True)
             self._cancel_thread.start()
@@ -294,6 +317,7 @@ class EngineProcess:
 
     def _read_stdout(self) -> None:
         for line, cut in self._capped_lines(self._proc.stdout):
+            self.last_output = time.monotonic()
             if cut:  # a huge line is never parsed as an event; keep its head as text
                 self.text_lines.append(line[:2000] + f"... [line cut at {MAX_LINE_CHARS} characters]")
                 continue
@@ -314,6 +338,7 @@ class EngineProcess:
 
     def _read_stderr(self) -> None:
         for line, cut in self._capped_lines(self._proc.stderr):
+            self.last_output = time.monotonic()
             if cut:
                 line = line[:2000] + " ..."
             text = line.rstrip("\r\n")
@@ -342,6 +367,9 @@ class EngineProcess:
 
     def _final_state(self, code: int) -> str:
         if self._cancel_requested and self.result is None:
+            if self._stop_reason:
+                self.failure = self._stop_reason
+                return "failed"
             return "cancelled"
         if self.error_event is not None:
             return "failed"
@@ -378,6 +406,9 @@ class EngineProcess:
         if state == "cancelled":
             return ["Cancelled."]
         lines: list[str] = []
+        if self._stop_reason and self.failure == self._stop_reason:
+            lines.append(self._stop_reason)  # the engine's own "interrupted" error is a consequence
+            return lines
         if self.error_event is not None:
             ev = self.error_event
             lines.append(str(ev.get("message") or "The engine failed."))

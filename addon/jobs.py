@@ -7,6 +7,18 @@ another .blend. A persistent ``bpy.app.timers`` function (:func:`_timer`) calls
 :class:`~.bridge.EngineProcess` into the job's progress fields, tags the UI for redraw
 and, when a job ends, calls its completion callback once (on the main thread).
 
+A flood of events never freezes Blender: one :func:`drain` applies events for at most
+:data:`TICK_BUDGET_S` (in batches of :data:`BATCH`) and leaves the rest queued in the
+process; the timer then comes back after :data:`BACKLOG_INTERVAL_S`. A job completes only
+when its process has ended *and* its queue is empty, so the final ``result``/``error``
+event is always applied before the completion callback runs.
+
+A silent engine is watched: no output line (stdout or stderr) for the preferences'
+*Warn When Silent* seconds while the process is alive puts a message in the job box
+(:meth:`Job.silence_lines`; Cancel keeps working); after *Stop Silent Engine After*
+seconds (0: never) the run is stopped with a clear error. Environment setup (pip may
+download for a long time without printing) only gets the warning.
+
 Timers do not fire in background mode (``blender -b``, the bpy module); tests and
 scripts call :func:`drain` themselves (or :func:`wait`).
 """
@@ -24,6 +36,17 @@ import bpy
 from .bridge import EngineProcess
 
 INTERVAL_S = 0.15
+#: Seconds of event handling per :func:`drain` (one timer tick); the rest waits for the next tick.
+TICK_BUDGET_S = 0.02
+#: Events taken from a process per batch (the budget is checked between batches).
+BATCH = 200
+#: Timer interval while events are still queued (Blender handles its own events in between).
+BACKLOG_INTERVAL_S = 0.01
+#: Defaults of the watchdog preferences (used when the add-on's preferences are not there).
+SILENCE_WARN_S = 120
+SILENCE_STOP_S = 3600
+#: Job kinds the watchdog only warns about, never stops (pip prints nothing while it downloads).
+WARN_ONLY_KINDS = ("env_setup",)
 #: Finished jobs kept for the UI (per kind the latest is shown).
 KEEP_FINISHED = 8
 
@@ -59,6 +82,10 @@ class Job:
     ended: float | None = None
     #: when the last event arrived (a long silence after a finished stage is kernel compiling)
     last_event: float = field(default_factory=time.monotonic)
+    #: seconds the process has printed nothing, once that reached the warning limit (else 0)
+    silent_s: float = 0.0
+    #: the watchdog's limit to stop the run (0: never), as it was at the last drain
+    silence_stop_s: float = 0.0
 
     @property
     def running(self) -> bool:
@@ -80,6 +107,16 @@ class Job:
     def cancel(self, timeout: float = 5.0) -> None:
         self.process.cancel(timeout=timeout)
 
+    def silence_lines(self) -> list[str]:
+        """What the job box says about a silent engine ([] while it talks or has ended)."""
+        if not self.running or not self.silent_s or self.process.cancel_requested:
+            return []
+        lines = [f"The engine has printed nothing for {_duration(self.silent_s)}: it may be hung",
+                 "A first run compiles its kernels (about a minute); Cancel stops it"]
+        if self.silence_stop_s and self.kind not in WARN_ONLY_KINDS:
+            lines.append(f"It is stopped after {_duration(self.silence_stop_s)} of silence (Preferences)")
+        return lines
+
     def apply(self, event: dict) -> None:
         self.last_event = time.monotonic()
         kind = event.get("event")
@@ -99,6 +136,31 @@ class Job:
             self.result = event
         elif kind == "error":
             self.error = event
+
+
+def _duration(seconds: float) -> str:
+    """``"45 s"``, ``"2 min 5 s"``, ``"1 h 0 min"``."""
+    seconds = int(max(seconds, 0))
+    if seconds < 60:
+        return f"{seconds} s"
+    m, s = divmod(seconds, 60)
+    if m < 60:
+        return f"{m} min {s} s"
+    h, m = divmod(m, 60)
+    return f"{h} h {m} min"
+
+
+def silence_limits() -> tuple[float, float]:
+    """``(warn_s, stop_s)`` of the no-output watchdog, from the add-on's preferences."""
+    from . import preferences  # noqa: PLC0415 (preferences imports this module)
+
+    try:
+        prefs = preferences.get()
+    except (AttributeError, RuntimeError, ReferenceError):
+        prefs = None
+    if prefs is None:
+        return float(SILENCE_WARN_S), float(SILENCE_STOP_S)
+    return float(prefs.silence_warn_s), float(prefs.silence_stop_s)
 
 
 def _as_int(value, default):
@@ -179,38 +241,83 @@ def _prune() -> None:
 
 
 # -- the pump ----------------------------------------------------------------------------
-def drain() -> bool:
+_FINAL = ("finished", "failed", "cancelled")
+
+
+def drain(budget_s: float | None = None) -> bool:
     """Apply pending events to every running job; finish jobs whose process ended.
 
-    Returns True when anything changed (the UI was tagged for redraw).
+    Handles events for about ``budget_s`` seconds (default :data:`TICK_BUDGET_S`; each
+    job gets at least one batch); what is left stays queued for the next call
+    (:func:`backlog`). A job completes only once its process has ended and every event
+    of it was applied. Returns True when anything changed (the UI was tagged for redraw).
     """
+    budget = TICK_BUDGET_S if budget_s is None else budget_s
+    deadline = time.monotonic() + budget
     changed = False
+    limits = None
     for job in list(_JOBS.values()):
         if job.completed:
             changed |= _run_pending(job)
             continue
-        events = job.process.poll_events()
-        for event in events:
-            job.apply(event)
-        changed |= bool(events)
+        # The state first: once it is final the readers are done, so every event is queued.
         state = job.process.state
-        if state != job.state:
-            job.state = state
-            changed = True
-        if state in ("finished", "failed", "cancelled") and not job.completed:
-            job.completed = True
-            job.ended = time.monotonic()
-            if job.error is None and job.process.error_event is not None:
-                job.error = job.process.error_event
-            if job.on_complete is not None:
-                try:
-                    job.on_complete(job)
-                except Exception as exc:  # noqa: BLE001 (a builder bug must not kill the timer)
-                    job.callback_error = f"Building the result failed: {type(exc).__name__}: {exc}"
-            changed = True
+        applied = 0
+        while True:
+            events = job.process.poll_events(BATCH)
+            for event in events:
+                job.apply(event)
+            applied += len(events)
+            if len(events) < BATCH or time.monotonic() >= deadline:
+                break
+        changed |= bool(applied)
+        if state not in _FINAL:
+            if limits is None:
+                limits = silence_limits()
+            changed |= _watch(job, *limits)
+            continue
+        if job.process.pending_events:
+            continue  # the rest of its events first; the result/error event is among them
+        job.state = state
+        job.silent_s = 0.0
+        job.completed = True
+        job.ended = time.monotonic()
+        if job.error is None and job.process.error_event is not None:
+            job.error = job.process.error_event
+        if job.on_complete is not None:
+            try:
+                job.on_complete(job)
+            except Exception as exc:  # noqa: BLE001 (a builder bug must not kill the timer)
+                job.callback_error = f"Building the result failed: {type(exc).__name__}: {exc}"
+        changed = True
     if changed:
         tag_redraw()
     return changed
+
+
+def _watch(job: Job, warn_s: float, stop_s: float) -> bool:
+    """The no-output watchdog for one running job; True when what the box shows changed."""
+    last = job.process.last_output
+    if last is None:
+        return False
+    silent = time.monotonic() - last
+    was = job.silent_s
+    job.silent_s = silent if warn_s > 0 and silent >= warn_s else 0.0
+    job.silence_stop_s = stop_s
+    if job.silent_s and not was:
+        job.logs.append(f"[warning] The engine has printed nothing for {_duration(silent)}")
+    if stop_s > 0 and silent >= stop_s and job.kind not in WARN_ONLY_KINDS and not job.process.cancel_requested:
+        job.process.cancel(reason=(
+            f"The engine printed nothing for {_duration(silent)} and was stopped as hung. If a step really "
+            "takes that long, raise 'Stop Silent Engine After' in the add-on preferences (0: never)."))
+        job.logs.append("[warning] Stopping the silent engine")
+        return True
+    return bool(job.silent_s) or bool(was)
+
+
+def backlog() -> int:
+    """Events read from engines but not yet applied (a flood is applied over several ticks)."""
+    return sum(j.process.pending_events for j in _JOBS.values() if not j.completed)
 
 
 def object_mode() -> bool:
@@ -246,7 +353,8 @@ def wait(job: Job, timeout: float = 60.0, step: float = 0.05) -> Job:
             break
         if time.monotonic() > deadline:
             raise TimeoutError(f"job {job.label} still running after {timeout} s")
-        time.sleep(step)
+        if not backlog():
+            time.sleep(step)
     return job
 
 
@@ -273,6 +381,9 @@ def _timer():
     except Exception as exc:  # noqa: BLE001 (keep the pump alive)
         print(f"Motion Splats: job update failed: {type(exc).__name__}: {exc}")
     # Keep ticking while anything runs or waits to be built; stop otherwise (start() re-arms it).
+    # A backlog of events comes back soon, after Blender handled its own events.
+    if backlog():
+        return BACKLOG_INTERVAL_S
     return INTERVAL_S if running() or any(j.pending for j in _JOBS.values()) else None
 
 

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 import bpy
-from bpy.props import EnumProperty, StringProperty
+from bpy.props import EnumProperty, IntProperty, StringProperty
 
 from . import env_setup, jobs
 from .bridge import EXTENSION_ROOT
@@ -205,6 +205,8 @@ def _draw_job(layout, job, ok_text: str):
         row.label(text=f"{job.label}: {job.stage or 'starting'} {job.step}/{job.total or '?'}", icon="TIME")
         op = row.operator("motion_splats.cancel_job", text="", icon="X")
         op.job_id = job.id
+        for i, line in enumerate(job.silence_lines()):
+            box.label(text=line[:160], icon="ERROR" if i == 0 else "BLANK1")
         for line in list(job.logs)[-3:]:
             box.label(text=line[:120])
         return
@@ -271,6 +273,19 @@ class MotionSplatsPreferences(bpy.types.AddonPreferences):
                                           "extension's user folder",
                               subtype="DIR_PATH", default="")
 
+    silence_warn_s: IntProperty(
+        name="Warn When Silent For",
+        description="Seconds without any output from a running engine before its job box says it may be hung "
+                    "(a first run compiles its kernels for about a minute)",
+        default=jobs.SILENCE_WARN_S, min=1, soft_max=3600,
+    )
+    silence_stop_s: IntProperty(
+        name="Stop Silent Engine After",
+        description="Seconds without any output after which a running engine is stopped as hung, with an error "
+                    "in its job box (environment setup is never stopped). 0: never",
+        default=jobs.SILENCE_STOP_S, min=0, soft_max=24 * 3600,
+    )
+
     def draw(self, context):
         layout = self.layout
         col = layout.column()
@@ -288,6 +303,8 @@ class MotionSplatsPreferences(bpy.types.AddonPreferences):
         col.prop(self, "cache_dir")
         if not self.cache_dir:
             col.label(text=f"Automatic: {cache_dir(context)}", icon="INFO")
+        col.prop(self, "silence_warn_s")
+        col.prop(self, "silence_stop_s")
 
         sub = layout.column()
         sub.use_property_split = True

@@ -50,6 +50,12 @@ def draw_job(layout, job) -> None:
         op.job_id = job.id
         if job.process.cancel_requested:
             box.label(text="Stopping (saving a checkpoint)...", icon="SORTTIME")
+        silence = job.silence_lines()
+        if silence:
+            warn = box.column(align=True)
+            warn.alert = True
+            for i, line in enumerate(silence):
+                warn.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
     col = box.column(align=True)
     if job.stage:
         col.label(text=f"Stage: {job.stage}")
