@@ -237,6 +237,10 @@ def start_training(op, context, *, resume: bool):
         if not clip or not Path(clip).exists():
             op.report({"ERROR"}, f"The clip of the last run is missing: {clip or '(none)'}")
             return {"CANCELLED"}
+        steps = finished_run(bundle)
+        if steps is not None:
+            op.report({"ERROR"}, finished_message(steps))
+            return {"CANCELLED"}
         # the engine resumes only the run it checkpointed: its preset and step count, whatever
         # the panel says now
         preset = settings.last_preset or settings.preset
@@ -273,6 +277,37 @@ def start_training(op, context, *, resume: bool):
     return {"FINISHED"}
 
 
+_FINISHED_CACHE: dict = {}
+
+
+def finished_run(bundle: str) -> int | None:
+    """Steps of the finished run in ``bundle`` (``engine.bundle.finished_steps``), else None.
+
+    Poll calls this on every redraw: the answer is cached by the ``scene.json`` and
+    checkpoint file stamps, so only a changed bundle is read again."""
+    from ..engine.bundle import SCENE_FILE, finished_steps
+
+    folder = Path(bundle)
+    stamps = []
+    for f in (folder / SCENE_FILE, folder / "checkpoints" / "checkpoint.pt"):
+        try:
+            st = f.stat()
+            stamps.append((st.st_mtime_ns, st.st_size))
+        except OSError:
+            stamps.append(None)
+    key = (str(folder), tuple(stamps))
+    if key not in _FINISHED_CACHE:
+        if len(_FINISHED_CACHE) > 32:
+            _FINISHED_CACHE.clear()
+        _FINISHED_CACHE[key] = finished_steps(folder) if stamps[0] is not None else None
+    return _FINISHED_CACHE[key]
+
+
+def finished_message(steps: int) -> str:
+    return (f"The last run is finished ({steps} steps): nothing to resume; Reconstruct trains again "
+            "into a new folder")
+
+
 class _TrainBase:
     @classmethod
     def poll(cls, context):
@@ -300,7 +335,7 @@ class MOTIONSPLATS_OT_reconstruct(_TrainBase, bpy.types.Operator):
 
 
 class MOTIONSPLATS_OT_resume(_TrainBase, bpy.types.Operator):
-    """Continue the last reconstruction from its checkpoint (after Cancel)"""
+    """Continue the last reconstruction from its checkpoint (after Cancel); a finished run has none"""
 
     bl_idname = "motion_splats.resume"
     bl_label = "Resume"
@@ -313,6 +348,10 @@ class MOTIONSPLATS_OT_resume(_TrainBase, bpy.types.Operator):
         settings = reconstruct_settings(context)
         if not settings.bundle_path:
             cls.poll_message_set("Nothing to resume: run Reconstruct first")
+            return False
+        steps = finished_run(bpy.path.abspath(settings.bundle_path))
+        if steps is not None:
+            cls.poll_message_set(finished_message(steps))
             return False
         return True
 

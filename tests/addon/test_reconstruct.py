@@ -84,8 +84,11 @@ def test_reconstruct_builds_result(extension, registered, tmp_path, tiny_clip, c
     assert col is not None
     empties = extension.addon.build.node_empties(col)
     assert len(empties) > 0 and all(e.type == "EMPTY" for e in empties)
-    # Resume is offered now and runs on the same bundle
-    assert bpy.ops.motion_splats.resume.poll()
+    # a finished run has nothing to resume (#22): Resume is off, with the reason
+    assert extension.operators.reconstruct_ops.finished_run(str(bundle)) == 3
+    assert not bpy.ops.motion_splats.resume.poll()
+    with pytest.raises(RuntimeError, match="nothing to resume"):
+        bpy.ops.motion_splats.resume()
 
 
 def test_cancel_writes_checkpoint_and_resume(extension, registered, tmp_path, tiny_clip, clean_jobs):
