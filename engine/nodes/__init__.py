@@ -37,6 +37,7 @@ class NodeInitConfig:
     method: str = "mani"
     mani: ManiConfig = field(default_factory=ManiConfig)
     num_keyframes: int = 12        #: frames whose patches become candidates
+    dynamic_density: int = 3       #: moving pixels also become candidates on a grid this much finer than the patches
     num_keys: int = 10             #: spline keys, evenly spaced in [0, 1]
     graph_k: int = 8               #: neighbours in graph_idx
     radius_k: int = 4              #: neighbours for the radius
@@ -81,7 +82,7 @@ def initialise_nodes(depth, K, w2c, times, tokens, patch_centers, fg, tracks_xy,
     depth, K, w2c, times = (torch.as_tensor(x).float() for x in (depth, K, w2c, times))
     keyframes = choose_keyframes(depth.shape[0], config.num_keyframes)
     cand = build_candidates(depth, K, w2c, times, torch.as_tensor(tokens).float(),
-                            torch.as_tensor(patch_centers).float(), torch.as_tensor(fg).float(), keyframes)
+                            torch.as_tensor(patch_centers).float(), torch.as_tensor(fg).float(), keyframes, config.dynamic_density)
     tracks3d = lift_tracks(torch.as_tensor(tracks_xy).float(), torch.as_tensor(tracks_vis), depth, K, w2c,
                            config.vis_threshold, config.edge_tolerance)
     if config.clean_tracks:

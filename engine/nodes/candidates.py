@@ -48,7 +48,7 @@ def sample_nearest(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
 
 def build_candidates(depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, times: torch.Tensor,
                      tokens: torch.Tensor, patch_centers: torch.Tensor, fg: torch.Tensor,
-                     keyframes: torch.Tensor) -> Candidates:
+                     keyframes: torch.Tensor, dynamic_density: int = 1, dynamic_threshold: float = 0.5) -> Candidates:
     """Back-project every patch centre of the keyframes with its aligned depth.
 
     Parameters
@@ -58,10 +58,13 @@ def build_candidates(depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, ti
     tokens : (F, Gh, Gw, D); patch_centers : (Gh, Gw, 2) pixel coords in the depth image.
     fg : (F, H, W) foreground / dynamic prior in [0, 1].
     keyframes : (Fk,) long frame indices.
+    dynamic_density : > 1 adds candidates on moving pixels (``fg >= dynamic_threshold``) on a
+        grid this many times finer than the patch grid (:func:`_moving_candidates`).
 
     Returns
     -------
-    Candidates with ``M ≤ Fk·Gh·Gw`` rows (patches with invalid depth are dropped).
+    Candidates with ``M ≤ Fk·Gh·Gw`` rows from the patch grid (patches with invalid depth
+    are dropped), then the moving-pixel ones.
     """
     f = keyframes.long()
     gh, gw, d = tokens.shape[1:]
@@ -71,7 +74,7 @@ def build_candidates(depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, ti
     x = unproject(K[f].unsqueeze(1).to(depth.dtype), w2c[f].unsqueeze(1).to(depth.dtype), uv, z)  # [Fk, P, 3]
     valid = torch.isfinite(z) & (z > 0) & torch.isfinite(x).all(-1)
     frame = f.unsqueeze(1).expand(-1, gh * gw)
-    return Candidates(
+    cand = Candidates(
         positions=x[valid].float(),
         tokens=tokens[f].reshape(f.shape[0], gh * gw, d)[valid].float(),
         fg=torch.nan_to_num(m[valid], nan=0.0).clamp(0, 1).float(),
@@ -79,3 +82,45 @@ def build_candidates(depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, ti
         time=times.to(torch.float32)[frame[valid]],
         pixel=uv[valid].float(),
     )
+    if dynamic_density > 1:
+        cand = _concat(cand, _moving_candidates(depth, K, w2c, times, tokens, patch_centers, fg, f,
+                                                dynamic_density, dynamic_threshold))
+    return cand
+
+
+def _concat(a: Candidates, b: Candidates) -> Candidates:
+    return Candidates(*(torch.cat([getattr(a, k), getattr(b, k)]) for k in
+                        ("positions", "tokens", "fg", "frame", "time", "pixel")))
+
+
+def _moving_candidates(depth, K, w2c, times, tokens, patch_centers, fg, keyframes, density: int,
+                       threshold: float) -> Candidates:
+    """Extra candidates on moving pixels: a grid ``density`` times finer than the patch grid
+    (the patch centres themselves excluded), each carrying its patch's token.
+
+    A moving object a few patches wide gets a handful of candidates per keyframe from the
+    patch grid alone, too few for MANI to keep "many nodes where it moves": a two-link limb
+    then had two or three nodes, which cannot bend it. Shapes as :func:`build_candidates`.
+    """
+    gh, gw, d = tokens.shape[1:]
+    pc = patch_centers.to(depth.dtype)
+    step_x = (pc[0, -1, 0] - pc[0, 0, 0]) / max(gw - 1, 1) if gw > 1 else torch.tensor(8.0)
+    step_y = (pc[-1, 0, 1] - pc[0, 0, 1]) / max(gh - 1, 1) if gh > 1 else step_x
+    offs = (torch.arange(density, dtype=depth.dtype) + 0.5) / density - 0.5  # sub-patch offsets in [-0.5, 0.5)
+    oy, ox = torch.meshgrid(offs * step_y, offs * step_x, indexing="ij")
+    sub = torch.stack([ox, oy], -1).reshape(1, 1, -1, 2)  # [1, 1, S, 2]
+    centre = (ox.abs() < 1e-6) & (oy.abs() < 1e-6)
+    sub = sub[:, :, ~centre.reshape(-1)]
+    uv = (pc.reshape(gh * gw, 1, 2) + sub[0]).reshape(1, -1, 2)  # [1, P*S, 2]
+    patch = torch.arange(gh * gw).repeat_interleave(sub.shape[2])  # token of each sub-point
+    f = keyframes.long()
+    uv = uv.expand(f.shape[0], -1, -1)
+    z = torch.stack([sample_nearest(depth[i], uv[j]) for j, i in enumerate(f.tolist())])  # loop over keyframes
+    m = torch.stack([sample_nearest(fg[i], uv[j]) for j, i in enumerate(f.tolist())])
+    x = unproject(K[f].unsqueeze(1).to(depth.dtype), w2c[f].unsqueeze(1).to(depth.dtype), uv, z)
+    valid = torch.isfinite(z) & (z > 0) & torch.isfinite(x).all(-1) & (torch.nan_to_num(m, nan=0.0) >= threshold)
+    frame = f.unsqueeze(1).expand(-1, uv.shape[1])
+    tok = tokens[f].reshape(f.shape[0], gh * gw, d)[:, patch]
+    return Candidates(positions=x[valid].float(), tokens=tok[valid].float(),
+                      fg=m[valid].clamp(0, 1).float(), frame=frame[valid],
+                      time=times.to(torch.float32)[frame[valid]], pixel=uv[valid].float())

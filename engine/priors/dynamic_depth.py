@@ -88,3 +88,4 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
         stats["painted_px"] += int(near.sum())
         stats["frames"] += 1
     return out, stats
+
