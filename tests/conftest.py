@@ -22,3 +22,17 @@ def shared_dir() -> Path:
     if not SHARED.is_dir():
         pytest.skip("../shared is not present")
     return SHARED
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _empty_model_cache(tmp_path_factory):
+    """Point the model cache at an empty folder for the whole run (subprocesses inherit it):
+    with backend ``auto`` a run picks up any model installed in the user's cache, so results
+    would depend on the machine. Tests that want a model install it or pass its path."""
+    old = os.environ.get("MOTION_SPLATS_MODELS")
+    os.environ["MOTION_SPLATS_MODELS"] = str(tmp_path_factory.mktemp("model-cache"))
+    yield
+    if old is None:
+        os.environ.pop("MOTION_SPLATS_MODELS", None)
+    else:
+        os.environ["MOTION_SPLATS_MODELS"] = old

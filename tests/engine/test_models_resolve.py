@@ -115,7 +115,8 @@ def test_auto_flow_takes_cached_then_shipped_model(tmp_path, monkeypatch):
 
 def _args(**kw):
     base = dict(tokens_model=None, depth_model=None, mask_model=None, tracks_model=None, depth_path=None,
-                mask_path=None, tracks_path=None, no_models=False, flow_backend=None, flow_model=None)
+                mask_path=None, tracks_path=None, no_models=False, flow_backend=None, flow_model=None,
+                clip=str(Path(__file__)))  # not a clip manifest: no manifest priors
     return argparse.Namespace(**{**base, **kw})
 
 
