@@ -37,7 +37,7 @@ class NodeInitConfig:
     method: str = "mani"
     mani: ManiConfig = field(default_factory=ManiConfig)
     num_keyframes: int = 12        #: frames whose patches become candidates
-    dynamic_density: int = 3       #: moving pixels also become candidates on a grid this much finer than the patches
+    dynamic_density: int = 3       #: > 1: moving pixels also become candidates on a grid this much finer than the patches
     num_keys: int = 10             #: spline keys, evenly spaced in [0, 1]
     graph_k: int = 8               #: neighbours in graph_idx
     radius_k: int = 4              #: neighbours for the radius

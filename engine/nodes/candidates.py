@@ -48,7 +48,8 @@ def sample_nearest(img: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
 
 def build_candidates(depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, times: torch.Tensor,
                      tokens: torch.Tensor, patch_centers: torch.Tensor, fg: torch.Tensor,
-                     keyframes: torch.Tensor, dynamic_density: int = 1, dynamic_threshold: float = 0.5) -> Candidates:
+                     keyframes: torch.Tensor, dynamic_density: int = 1, dynamic_threshold: float = 0.5,
+                     dynamic_max_share: float = 0.25) -> Candidates:
     """Back-project every patch centre of the keyframes with its aligned depth.
 
     Parameters
@@ -59,7 +60,8 @@ def build_candidates(depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, ti
     fg : (F, H, W) foreground / dynamic prior in [0, 1].
     keyframes : (Fk,) long frame indices.
     dynamic_density : > 1 adds candidates on moving pixels (``fg >= dynamic_threshold``) on a
-        grid this many times finer than the patch grid (:func:`_moving_candidates`).
+        grid this many times finer than the patch grid (:func:`_moving_candidates`), at most
+        ``dynamic_max_share`` times as many as the patch-grid candidates.
 
     Returns
     -------
@@ -83,8 +85,17 @@ def build_candidates(depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, ti
         pixel=uv[valid].float(),
     )
     if dynamic_density > 1:
-        cand = _concat(cand, _moving_candidates(depth, K, w2c, times, tokens, patch_centers, fg, f,
-                                                dynamic_density, dynamic_threshold))
+        extra = _moving_candidates(depth, K, w2c, times, tokens, patch_centers, fg, f, dynamic_density,
+                                   dynamic_threshold)
+        cap = int(dynamic_max_share * cand.positions.shape[0])
+        if extra.positions.shape[0] > cap:
+            # a prior that calls a third of the image moving (real footage: a breathing torso,
+            # shadows) would flood MANI with moving candidates and take the nodes from the
+            # static scene: cups.mp4 -1.4 dB uncapped. Evenly spaced, so it stays deterministic.
+            keep = torch.linspace(0, extra.positions.shape[0] - 1, max(cap, 0)).round().long()
+            extra = Candidates(*(getattr(extra, k)[keep] for k in
+                                 ("positions", "tokens", "fg", "frame", "time", "pixel")))
+        cand = _concat(cand, extra)
     return cand
 
 
