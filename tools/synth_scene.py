@@ -32,6 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # run as a script: the engine's geometry (numpy/torch, no bpy) is one home
+    sys.path.insert(0, str(REPO))
+
 PRESETS = {
     "tiny": dict(frames=12, width=96, height=72, rgb_samples=2, points_per_object=200),
     "small": dict(frames=48, width=240, height=180, rgb_samples=4, points_per_object=500),
@@ -51,25 +55,20 @@ KIND_OBJECTS = {
 KIND_OBJECTS["all"] = KIND_OBJECTS["rigid"] + KIND_OBJECTS["articulated"] + KIND_OBJECTS["nonrigid"]
 BALL_RADIUS = 0.35
 
-CV_FROM_BL = np.diag([1.0, -1.0, -1.0])
 SCENE_TARGET = np.array([0.0, 0.0, 0.9])
 VAL_BASELINE = 0.8  # val camera centre = train centre + 0.8 * train +x axis (~15% of the ~5.3 distance)
 
 
 # ----------------------------------------------------------------------------- cameras
 
-def _look_at_w2c(eye: np.ndarray, target: np.ndarray, up=np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """OpenCV world-to-camera 4x4 (x right, y down, z forward)."""
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, up)
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])  # rows = camera axes in world
-    w2c = np.eye(4)
-    w2c[:3, :3] = R
-    w2c[:3, 3] = -R @ eye
-    return w2c
+def _look_at_w2c(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """OpenCV world-to-camera 4x4 (x right, y down, z forward), float64: the engine's
+    :func:`engine.geometry.camera.look_at` (world up +z)."""
+    import torch
+
+    from engine.geometry.camera import look_at
+
+    return look_at(torch.as_tensor(eye, dtype=torch.float64), torch.as_tensor(target, dtype=torch.float64)).numpy()
 
 
 def camera_path(frames: int, seed: int):
@@ -360,9 +359,10 @@ def _set_frame(bpy, scene, objs, frame: int, ti: float, seed: int):
 
 def _set_camera(scene, cam_ob, w2c_cv: np.ndarray):
     from mathutils import Matrix
-    c2w_cv = np.linalg.inv(w2c_cv)
-    flip = np.diag([1.0, -1.0, -1.0, 1.0])
-    cam_ob.matrix_world = Matrix((c2w_cv @ flip).tolist())
+
+    from engine.geometry.blender_camera import blender_matrix_from_w2c
+
+    cam_ob.matrix_world = Matrix(blender_matrix_from_w2c(w2c_cv).tolist())
     scene.camera = cam_ob
 
 
