@@ -327,9 +327,11 @@ def _worker(spec: dict) -> dict:
     else:
         data, nodes = synthetic_scene(spec["width"], spec["frames"], spec["nodes"], spec["seed"])
         # enough back-projected samples per keyframe for ~``gaussians`` at init (budget = the same)
+        # (the static / dynamic split seeds a fifth of them on the moving blob in every frame)
         keyframes = 8
-        overrides.update(num_nodes=nodes.count, init_keyframes=keyframes,
-                         gaussians_per_frame=max(1, spec["gaussians"] // keyframes),
+        dynamic = spec["gaussians"] // 5
+        overrides.update(num_nodes=nodes.count, init_keyframes=keyframes, dynamic_gaussians=dynamic,
+                         gaussians_per_frame=max(1, (spec["gaussians"] - dynamic) // keyframes),
                          max_gaussians=spec["gaussians"])
         scene = "synthetic"
     scene_s = time.perf_counter() - t0

@@ -106,7 +106,7 @@ class TrainConfig:
                                          # training frames (0..1); -1 = each node's own source frame
     rebind_every: int = 200              # refresh binding every N steps (0 = never)
     sh_degree: int = 1
-    gaussians_per_frame: int = 3000      # back-projected at init from each keyframe
+    gaussians_per_frame: int = 2250      # back-projected at init from each keyframe (static pixels, with the split)
     init_keyframes: int = 8              # frames sampled for Gaussian initialisation
     max_gaussians: int = 30000           # budget cap for densification
 
@@ -293,10 +293,12 @@ LIMITS: dict[str, int] = {"width": 8192, "steps": 10_000_000, "num_nodes": 200_0
 
 PRESETS: dict[str, dict[str, Any]] = {
     "preview": {},
-    "standard": dict(width=480, num_nodes=1024, steps=3000, gaussians_per_frame=8000, init_keyframes=12,
+    "standard": dict(width=480, num_nodes=1024, steps=3000, gaussians_per_frame=6000, dynamic_gaussians=24000,
+                     init_keyframes=12,
                      max_gaussians=150_000, densify_from=300, densify_until=2200, densify_every=100,
                      checkpoint_every=500, rebind_every=500, sh_degree=2, warmup_static_steps=200),
-    "high": dict(width=960, num_nodes=2048, steps=20000, gaussians_per_frame=30000, init_keyframes=16,
+    "high": dict(width=960, num_nodes=2048, steps=20000, gaussians_per_frame=22500, dynamic_gaussians=120000,
+                 init_keyframes=16,
                  max_gaussians=1_000_000, densify_from=500, densify_until=15000, densify_every=100,
                  opacity_reset_every=3000, checkpoint_every=1000, rebind_every=1000, sh_degree=3,
                  warmup_static_steps=500, device="auto"),
