@@ -227,12 +227,14 @@ def holdout_split(train: np.ndarray, times: np.ndarray, every: int) -> tuple[np.
 def still_plate_psnr(frames: np.ndarray, train: np.ndarray, idx: np.ndarray) -> float | None:
     """Mean PSNR (dB) of the clip's median training frame used as a still plate, against
     frames ``idx``: what a reconstruction that shows the background and nothing that moves
-    would score. frames uint8 [F, H, W, 3]; None when ``idx`` is empty."""
+    would score (:mod:`engine.bench.still_plate`, numpy only). frames uint8 [F, H, W, 3];
+    None when ``idx`` is empty."""
+    from .bench.still_plate import plate_psnr, still_plate
+
     if len(idx) == 0 or len(train) == 0:
         return None
-    plate = np.median(frames[train].astype(np.float32), axis=0) / 255.0
-    err = ((frames[idx].astype(np.float32) / 255.0 - plate[None]) ** 2).reshape(len(idx), -1).mean(1)
-    return float(np.mean(-10.0 * np.log10(np.maximum(err, 1e-12))))
+    plate = still_plate(frames[train])
+    return float(np.mean([plate_psnr(plate, f) for f in frames[idx]]))
 
 
 def frame_numbers(clip, times: np.ndarray) -> np.ndarray:

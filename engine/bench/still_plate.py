@@ -6,7 +6,8 @@ baseline beside it. The plate is the per-pixel median of the training frames; it
 against each training frame (whole image, and inside the dynamic mask when there is one)
 is what a model that reproduces no motion at all would get.
 
-``still_plate_scores`` works on arrays (the bench, ``engine train``'s print);
+``still_plate_scores`` works on arrays (the bench); ``engine train``'s print scores a plate of
+the training frames on the withheld ones with ``still_plate`` + ``plate_psnr``;
 ``bundle_split_frames`` loads a bundle's split frames and masks from its clip.
 """
 
@@ -23,7 +24,7 @@ def still_plate(frames: np.ndarray) -> np.ndarray:
     return np.median(frames, axis=0).round().astype(np.uint8)
 
 
-def _psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+def plate_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """PSNR in dB of uint8 images ``[H, W, 3]`` on [0, 1] (``engine.train.losses.psnr``'s
     definition: MSE over every channel of the masked pixels, clamped at 1e-12)."""
     err = ((a.astype(np.float64) - b.astype(np.float64)) / 255.0) ** 2
@@ -47,13 +48,13 @@ def still_plate_scores(frames: np.ndarray, masks: np.ndarray | None = None, min_
     """
     frames = np.asarray(frames)
     plate = still_plate(frames)
-    whole = [_psnr(plate, f) for f in frames]
+    whole = [plate_psnr(plate, f) for f in frames]
     masked = []
     if masks is not None:
         masks = np.asarray(masks, bool)
         if masks.shape != frames.shape[:3]:
             raise ValueError(f"masks {masks.shape} do not match frames {frames.shape[:3]}")
-        masked = [_psnr(plate, f, m) for f, m in zip(frames, masks) if m.sum() > min_pixels]
+        masked = [plate_psnr(plate, f, m) for f, m in zip(frames, masks) if m.sum() > min_pixels]
     return {"plate_psnr": float(np.mean(whole)), "plate_masked_psnr": float(np.mean(masked)) if masked else None,
             "frames": int(len(frames))}
 

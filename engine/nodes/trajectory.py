@@ -4,7 +4,7 @@ Source frame: a node's centre ``c_i`` is its candidate position (MANI: its clust
 medoid), observed at that candidate's source time ``t_i`` snapped to a frame. Tracks near
 the node *at that frame* vote with their displacement since that frame, so
 ``p_i(t_i) ≈ c_i``. Rotations start at identity. Training then takes canonical centres
-at one shared time (``engine.train.trainer.common_canonical_nodes``).
+at one shared time (``engine.train.init_model.common_canonical_nodes``).
 """
 
 from __future__ import annotations

@@ -22,18 +22,23 @@ from __future__ import annotations
 import numpy as np
 
 
+def _along_tracks(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Nearest-pixel values of per-frame images ``img [F, H, W]`` at track positions
+    ``xy [P, F, 2]`` (clamped to the image) -> ``[P, F]``."""
+    p, f = xy.shape[:2]
+    h, w = img.shape[1:]
+    col = np.clip(np.floor(np.nan_to_num(xy[..., 0])).astype(np.int64), 0, w - 1)
+    row = np.clip(np.floor(np.nan_to_num(xy[..., 1])).astype(np.int64), 0, h - 1)
+    return img[np.broadcast_to(np.arange(f), (p, f)), row, col]
+
+
 def moving_tracks(xy: np.ndarray, visible: np.ndarray, dynamic: np.ndarray, threshold: float = 0.5) -> np.ndarray:
     """Which tracks lie on moving content: the median dynamic prior along the track.
 
     xy : float [P, F, 2] pixels; visible : bool [P, F]; dynamic : float [F, H, W] in [0, 1].
     Returns bool [P] (False for tracks never visible).
     """
-    p, f = visible.shape
-    h, w = dynamic.shape[1:]
-    col = np.clip(np.floor(np.nan_to_num(xy[..., 0])).astype(np.int64), 0, w - 1)
-    row = np.clip(np.floor(np.nan_to_num(xy[..., 1])).astype(np.int64), 0, h - 1)
-    fr = np.broadcast_to(np.arange(f), (p, f))
-    val = np.where(visible, dynamic[fr, row, col], np.nan)
+    val = np.where(visible, _along_tracks(dynamic, xy), np.nan)
     with np.errstate(all="ignore"):
         med = np.nanmedian(np.where(visible.any(1, keepdims=True), val, 0.0), axis=1)
     return np.nan_to_num(med, nan=0.0) >= threshold
@@ -65,11 +70,7 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
     if not moving.any():
         return out, stats
     mxy, mvis = xy[moving], visible[moving]
-    p = mxy.shape[0]
-    col = np.clip(np.floor(np.nan_to_num(mxy[..., 0])).astype(np.int64), 0, w - 1)
-    row = np.clip(np.floor(np.nan_to_num(mxy[..., 1])).astype(np.int64), 0, h - 1)
-    fr = np.broadcast_to(np.arange(f), (p, f))
-    z = depth[fr, row, col]
+    z = _along_tracks(depth, mxy)
     z = np.where(mvis & (z > 0) & np.isfinite(z), z, np.nan)
     with np.errstate(all="ignore"):
         # log-median: the typical depth of what the track saw, robust to the frames where
@@ -88,4 +89,3 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
         stats["painted_px"] += int(near.sum())
         stats["frames"] += 1
     return out, stats
-

@@ -48,24 +48,6 @@ def to_canonical(model_like, points: torch.Tensor, t: float, k: int) -> tuple[to
     return canon, idx_c, w_c
 
 
-class _NodeMotion(torch.nn.Module):
-    """Node-only view of the motion, used before the Gaussians exist."""
-
-    def __init__(self, model: DynamicScene):
-        super().__init__()
-        self.m = model
-
-    def node_state(self, t):
-        return self.m.node_state(t)
-
-    def node_radii(self):
-        return self.m.node_radii()
-
-    @property
-    def node_centers(self):
-        return self.m.node_centers
-
-
 def _back_project(data: TrainingData, f: int, py: torch.Tensor, px: torch.Tensor, footprint_px: float):
     """World points, colours, isotropic scales and times of pixels ``(py, px) [P]`` of frame
     ``f`` (pixels without depth dropped); a Gaussian covers ~``footprint_px`` pixels."""
@@ -142,9 +124,10 @@ def dynamic_gaussians(data: TrainingData, cfg: TrainConfig, gen: torch.Generator
 
 
 class _NodeSubset(torch.nn.Module):
-    """Nodes ``sel [S]`` of a model, as the node-only view :func:`to_canonical` reads."""
+    """Nodes ``sel [S]`` of a model (every node for ``slice(None)``), as the node-only view
+    :func:`to_canonical` reads; used before the Gaussians exist."""
 
-    def __init__(self, model: DynamicScene, sel: torch.Tensor):
+    def __init__(self, model: DynamicScene, sel: torch.Tensor | slice):
         super().__init__()
         self.m, self.sel = model, sel
 
@@ -160,13 +143,13 @@ class _NodeSubset(torch.nn.Module):
         return self.m.node_centers[self.sel]
 
 
-def _canonicalise(probe: DynamicScene, pts: torch.Tensor, tms: torch.Tensor, node_sel: torch.Tensor | None,
-                  k: int, identity: bool) -> torch.Tensor:
-    """Map points observed at times ``tms`` to canonical space through nodes ``node_sel``
-    (all when None); one inversion per distinct time."""
+def canonicalise(probe: DynamicScene, pts: torch.Tensor, tms: torch.Tensor, node_sel: torch.Tensor | None,
+                 k: int, identity: bool = False) -> torch.Tensor:
+    """Map points ``[P, 3]`` observed at times ``tms [P]`` to canonical space through nodes
+    ``node_sel`` (all when None); one inversion per distinct time."""
     if identity or len(pts) == 0:
         return pts.clone()
-    view = _NodeMotion(probe) if node_sel is None else _NodeSubset(probe, node_sel)
+    view = _NodeSubset(probe, slice(None) if node_sel is None else node_sel)
     canon = torch.empty_like(pts)
     for t in torch.unique(tms).tolist():  # one inversion per observation time
         sel = tms == t
@@ -225,12 +208,12 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
     identity = cfg.motion == "mlp"  # the MLP starts at identity motion
     if node_dyn is None:
         pts, cols, scl, tms = initial_gaussians(data, cfg, gen)
-        canon = _canonicalise(probe, pts, tms, None, cfg.bind_k, identity)
+        canon = canonicalise(probe, pts, tms, None, cfg.bind_k, identity)
         g_dyn = None
     else:
         s_pts, s_cols, s_scl, _ = initial_gaussians(data, cfg, gen, static_only=True)
         d_pts, d_cols, d_scl, d_tms = dynamic_gaussians(data, cfg, gen)
-        d_canon = _canonicalise(probe, d_pts, d_tms, torch.nonzero(node_dyn).squeeze(1), cfg.bind_k, identity)
+        d_canon = canonicalise(probe, d_pts, d_tms, torch.nonzero(node_dyn).squeeze(1), cfg.bind_k, identity)
         canon = torch.cat([s_pts, d_canon])  # static points are where they were seen
         cols, scl = torch.cat([s_cols, d_cols]), torch.cat([s_scl, d_scl])
         g_dyn = torch.cat([torch.zeros(len(s_pts), dtype=torch.bool, device=dev),
@@ -249,7 +232,7 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
 
 
 def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys: torch.Tensor,
-                           pos_tangents: torch.Tensor, t_rel: float, graph: torch.Tensor | None,
+                           pos_tangents: torch.Tensor | None, t_rel: float, graph: torch.Tensor | None,
                            radius_k: int = 4, radius_factor: float = 1.0):
     """Canonical node centres at one shared time: each node's initial position there.
 
@@ -265,13 +248,11 @@ def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys
     are unchanged in meaning (translation ``pos(t) - c``), radii and the ARAP graph are
     recomputed from the new centres (at ``t_c`` neighbours are true neighbours).
 
-    key_times [K], pos_keys / pos_tangents [N, K, 3] -> centres [N, 3], radii [N],
-    graph [N, k] (``None`` in, ``None`` out).
+    key_times [K], pos_keys / pos_tangents [N, K, 3] (tangents None: Catmull-Rom of the keys)
+    -> centres [N, 3], radii [N], graph [N, k] (``None`` in, ``None`` out).
     """
-    from ..geometry.hermite import hermite_eval
+    from ..geometry.hermite import catmull_rom_tangents, hermite_eval
     from ..nodes.graph import node_graph, node_radii
-
-    from ..geometry.hermite import catmull_rom_tangents
 
     if pos_tangents is None:
         pos_tangents = catmull_rom_tangents(key_times, pos_keys)

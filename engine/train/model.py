@@ -26,11 +26,12 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from ..geometry.binding import bind_gaussians, rbf_weights
+from ..geometry.binding import bind_gaussians
 from ..geometry.dualquat import dq_apply_points, dq_apply_rotations, dq_blend, node_transforms_dq
 from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_eval_quat
 from ..geometry.quaternion import quat_normalize
-from .fused import fused_available, fused_deform, fused_knn
+from .fused import fused_available, fused_deform
+from .split import bind_within_class, knn_rbf
 
 # Use the fused CPU deformation (engine/train/fused.py) where it applies; the torch
 # path (gaussian_transforms + dq_apply_*) is the reference and the GPU path.
@@ -222,28 +223,19 @@ class DynamicScene(nn.Module):
         radii = self.node_radii().detach()
         if not self.is_split:
             return bind_gaussians(points, self.node_centers, radii, self.bind_k)
-        from .split import bind_within_class
-
         if point_dyn is None:
             point_dyn = torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
-        return bind_within_class(points, point_dyn, self.node_centers, self.node_dyn, radii, self.bind_k)
+        return bind_within_class(points, point_dyn, self.node_centers, self.node_dyn, radii, self.bind_k,
+                                 fused=FUSED_DEFORM)
 
     @torch.no_grad()
     def rebind(self) -> None:
         """Refresh each Gaussian's K nearest nodes and RBF weights (canonical space)."""
-        points, nodes, radii = self.means.detach(), self.node_centers, self.node_radii().detach()
+        points = self.means.detach()
         if self.is_split:
             idx, w = self.bind_points(points, self.gauss_dyn)
-            self.bind_idx, self.bind_w = idx, w.to(self.means.dtype)
-            return
-        if FUSED_DEFORM and fused_available(points, nodes) and nodes.shape[0] >= self.bind_k:
-            # the K-NN ranking and RBF weights of bind_gaussians without its [G, N] score
-            # matrix and top-k (~3x less CPU at 30k Gaussians x 1k nodes)
-            idx = fused_knn(points, nodes, self.bind_k)
-            diff = points.unsqueeze(1) - nodes[idx]
-            w = rbf_weights((diff * diff).sum(-1), radii[idx])
         else:
-            idx, w = bind_gaussians(points, nodes, radii, self.bind_k)
+            idx, w = knn_rbf(points, self.node_centers, self.node_radii().detach(), self.bind_k, fused=FUSED_DEFORM)
         self.bind_idx = idx
         self.bind_w = w.to(self.means.dtype)
 

@@ -33,16 +33,21 @@ def node_dynamic_flags(p_dyn: torch.Tensor, node_fg: torch.Tensor, threshold: fl
     return torch.maximum(p_dyn, node_fg) >= threshold
 
 
-def _knn_rbf(points: torch.Tensor, nodes: torch.Tensor, radii: torch.Tensor, k: int):
-    """K nearest ``nodes [M, 3]`` of ``points [P, 3]`` with RBF weights; ``k`` may exceed M
-    (the nearest node repeats with weight 0)."""
+def knn_rbf(points: torch.Tensor, nodes: torch.Tensor, radii: torch.Tensor, k: int, fused: bool = True):
+    """K nearest ``nodes [M, 3]`` of ``points [P, 3]`` and their normalised RBF weights,
+    ``([P, k] long, [P, k])``; ``k`` may exceed M (the nearest node repeats with weight 0).
+
+    ``fused``: on the CPU, the K-NN ranking of :func:`~engine.geometry.binding.bind_gaussians`
+    in one Numba pass, without its ``[P, M]`` score matrix and top-k (~3x less CPU at 30k
+    Gaussians x 1k nodes); ``bind_gaussians`` is the reference and the GPU path.
+    """
     kk = min(k, nodes.shape[0])
     if points.shape[0] == 0:
         return (torch.zeros(0, k, dtype=torch.long, device=points.device),
                 torch.zeros(0, k, dtype=points.dtype, device=points.device))
     from .fused import fused_available, fused_knn
 
-    if fused_available(points, nodes) and nodes.shape[0] >= kk:
+    if fused and fused_available(points, nodes):
         idx = fused_knn(points.contiguous(), nodes.contiguous(), kk).to(points.device)
         diff = points.unsqueeze(1) - nodes[idx]
         w = rbf_weights((diff * diff).sum(-1), radii[idx])
@@ -56,13 +61,14 @@ def _knn_rbf(points: torch.Tensor, nodes: torch.Tensor, radii: torch.Tensor, k: 
 
 
 def bind_within_class(points: torch.Tensor, point_dyn: torch.Tensor, nodes: torch.Tensor, node_dyn: torch.Tensor,
-                      radii: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+                      radii: torch.Tensor, k: int, fused: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Bind each point to its ``k`` nearest nodes *of its own class*.
 
     Parameters
     ----------
     points : [P, 3] canonical positions; point_dyn : [P] bool;
-    nodes : [N, 3] canonical node centres; node_dyn : [N] bool; radii : [N].
+    nodes : [N, 3] canonical node centres; node_dyn : [N] bool; radii : [N];
+    fused : as :func:`knn_rbf`.
 
     Returns
     -------
@@ -79,7 +85,7 @@ def bind_within_class(points: torch.Tensor, point_dyn: torch.Tensor, nodes: torc
             continue
         sel_n = node_dyn == cls
         ids = all_nodes[sel_n] if bool(sel_n.any()) else all_nodes
-        i, wi = _knn_rbf(points[sel_p], nodes[ids], radii[ids], k)
+        i, wi = knn_rbf(points[sel_p], nodes[ids], radii[ids], k, fused)
         idx[sel_p] = ids[i]
         w[sel_p] = wi.to(w.dtype)
     return idx, w

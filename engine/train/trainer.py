@@ -19,10 +19,9 @@ import torch
 from .. import bundle as B
 from ..errors import Cancelled, InputError
 from ..fsutil import atomic_path
-from ..geometry.binding import bind_gaussians
 from ..geometry.camera import project, unproject
-from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
-from ..geometry.quaternion import quat_apply, quat_conj, quat_normalize, quat_to_matrix
+from ..geometry.dualquat import node_transforms_dq
+from ..geometry.quaternion import quat_apply, quat_normalize, quat_to_matrix
 from ..protocol import Reporter
 from . import checkpoint as CK
 from . import losses as L
@@ -41,8 +40,9 @@ CHECKPOINT_NAME = "checkpoint.pt"
 FUSED_REG = True
 
 
-from .init_model import (build_model, common_canonical_nodes, initial_gaussians,  # noqa: F401
-                         node_fg_score, to_canonical, trajectory_fg_score)
+# build_model / initial_gaussians / trajectory_fg_score re-exported: the model's
+# construction lives in init_model.py
+from .init_model import build_model, canonicalise, initial_gaussians, trajectory_fg_score  # noqa: F401
 
 
 # ----------------------------------------------------------------------------------
@@ -192,21 +192,12 @@ class Trainer:
         z = d.depth[f0, py, px]
         ok = z > 0
         pid, f0, uv, z = pid[ok], f0[ok], uv[ok], z[ok]
-        canon = torch.empty(len(pid), 3, device=self.device)
-        idx = torch.empty(len(pid), self.model.bind_k, dtype=torch.long, device=self.device)
-        wts = torch.empty(len(pid), self.model.bind_k, device=self.device)
-        if self.model.is_split:  # map and bind through the dynamic nodes only
-            from .init_model import _canonicalise
-
-            x = unproject(d.K[f0], d.w2c[f0], uv, z)
-            dyn = torch.nonzero(self.model.node_dyn).squeeze(1)
-            canon = _canonicalise(self.model, x, d.times[f0].to(x.dtype), dyn, self.model.bind_k, False)
-            idx, wts = self.model.bind_points(canon)
-        else:
-            for f in torch.unique(f0).tolist():
-                sel = f0 == f
-                x = unproject(d.K[f], d.w2c[f], uv[sel], z[sel])
-                canon[sel], idx[sel], wts[sel] = to_canonical(self.model, x, float(d.times[f]), self.model.bind_k)
+        m = self.model
+        x = unproject(d.K[f0], d.w2c[f0], uv, z)
+        # with the split, mapped and bound through the dynamic nodes only (moving tracks)
+        dyn = torch.nonzero(m.node_dyn).squeeze(1) if m.is_split else None
+        canon = canonicalise(m, x, d.times[f0].to(x.dtype), dyn, m.bind_k)
+        idx, wts = m.bind_points(canon)
         self.track_ids, self.track_canon, self.track_idx, self.track_w = pid, canon, idx, wts
         self.track_vis = vis
 
@@ -387,22 +378,19 @@ class Trainer:
 
     def _dynamic_score(self) -> torch.Tensor:
         """Per-Gaussian dynamic score [G] for the mask term (the colour pass's extra
-        channel): the bound nodes' ``p_dyn`` blended by the binding weights. It changes only
+        channel): the Gaussian's class with the split, else the bound nodes' ``p_dyn``
+        blended by the binding weights. It changes only
         when the binding or the nodes do (rebind / densification assign new tensors), so it
         is cached on the identity and version of its inputs."""
         m = self.model
         if m.is_split:  # the class itself: dynamic Gaussians should cover the moving pixels
-            key = (m.gauss_dyn,)
-            c = getattr(self, "_dyn_cache", None)
-            if c is None or c[0][0] is not m.gauss_dyn:
-                self._dyn_cache = c = (key, None, m.gauss_dyn.to(m.means.dtype).contiguous())
-            return c[2]
-        key = (m.bind_idx, m.bind_w, m.node_p_dyn)
+            key, score = (m.gauss_dyn,), lambda: m.gauss_dyn.to(m.means.dtype)
+        else:
+            key, score = (m.bind_idx, m.bind_w, m.node_p_dyn), lambda: (m.node_p_dyn[m.bind_idx] * m.bind_w).sum(-1)
         versions = tuple(x._version for x in key)
         c = getattr(self, "_dyn_cache", None)
-        if c is None or any(a is not b for a, b in zip(c[0], key)) or c[1] != versions:
-            dyn = (m.node_p_dyn[m.bind_idx] * m.bind_w).sum(-1).contiguous()
-            self._dyn_cache = c = (key, versions, dyn)
+        if c is None or len(c[0]) != len(key) or any(a is not b for a, b in zip(c[0], key)) or c[1] != versions:
+            self._dyn_cache = c = (key, versions, score().contiguous())
         return c[2]
 
     def _densify(self):
