@@ -83,7 +83,7 @@ class MOTIONSPLATS_OT_model_download(bpy.types.Operator):
         python = preferences.engine_python_or_report(context, self)
         if not python:
             return {"CANCELLED"}
-        env = preferences.engine_env(context) if hasattr(preferences, "engine_env") else None
+        env = preferences.engine_env(context)
         process = EngineProcess.for_engine(python, "models", ["fetch", spec.name], env=env)
         job = jobs.start(JOB_PREFIX + spec.name, process, label=f"Download {spec.name}")
         if job.state == "failed":
