@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
@@ -71,19 +71,7 @@ def build_candidates(depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, ti
     f = keyframes.long()
     gh, gw, d = tokens.shape[1:]
     uv = patch_centers.reshape(1, gh * gw, 2).to(depth.dtype).expand(f.shape[0], -1, -1)  # [Fk, P, 2]
-    z = torch.stack([sample_nearest(depth[i], uv[j]) for j, i in enumerate(f.tolist())])  # loop over keyframes
-    m = torch.stack([sample_nearest(fg[i], uv[j]) for j, i in enumerate(f.tolist())])
-    x = unproject(K[f].unsqueeze(1).to(depth.dtype), w2c[f].unsqueeze(1).to(depth.dtype), uv, z)  # [Fk, P, 3]
-    valid = torch.isfinite(z) & (z > 0) & torch.isfinite(x).all(-1)
-    frame = f.unsqueeze(1).expand(-1, gh * gw)
-    cand = Candidates(
-        positions=x[valid].float(),
-        tokens=tokens[f].reshape(f.shape[0], gh * gw, d)[valid].float(),
-        fg=torch.nan_to_num(m[valid], nan=0.0).clamp(0, 1).float(),
-        frame=frame[valid],
-        time=times.to(torch.float32)[frame[valid]],
-        pixel=uv[valid].float(),
-    )
+    cand = _lift(depth, K, w2c, times, fg, f, uv, tokens[f].reshape(f.shape[0], gh * gw, d))
     if dynamic_density > 1:
         extra = _moving_candidates(depth, K, w2c, times, tokens, patch_centers, fg, f, dynamic_density,
                                    dynamic_threshold)
@@ -93,15 +81,30 @@ def build_candidates(depth: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, ti
             # shadows) would flood MANI with moving candidates and take the nodes from the
             # static scene: cups.mp4 -1.4 dB uncapped. Evenly spaced, so it stays deterministic.
             keep = torch.linspace(0, extra.positions.shape[0] - 1, max(cap, 0)).round().long()
-            extra = Candidates(*(getattr(extra, k)[keep] for k in
-                                 ("positions", "tokens", "fg", "frame", "time", "pixel")))
-        cand = _concat(cand, extra)
+            extra = Candidates(*(getattr(extra, k.name)[keep] for k in fields(Candidates)))
+        cand = Candidates(*(torch.cat([getattr(cand, k.name), getattr(extra, k.name)]) for k in fields(Candidates)))
     return cand
 
 
-def _concat(a: Candidates, b: Candidates) -> Candidates:
-    return Candidates(*(torch.cat([getattr(a, k), getattr(b, k)]) for k in
-                        ("positions", "tokens", "fg", "frame", "time", "pixel")))
+def _lift(depth, K, w2c, times, fg, f, uv, tok, min_fg: float | None = None) -> Candidates:
+    """Back-project pixels ``uv [Fk, P, 2]`` of keyframes ``f [Fk]`` carrying tokens
+    ``tok [Fk, P, D]``; pixels with invalid depth (or a dynamic prior below ``min_fg``)
+    are dropped. Other shapes as :func:`build_candidates`."""
+    z = torch.stack([sample_nearest(depth[i], uv[j]) for j, i in enumerate(f.tolist())])  # loop over keyframes
+    m = torch.stack([sample_nearest(fg[i], uv[j]) for j, i in enumerate(f.tolist())])
+    x = unproject(K[f].unsqueeze(1).to(depth.dtype), w2c[f].unsqueeze(1).to(depth.dtype), uv, z)  # [Fk, P, 3]
+    valid = torch.isfinite(z) & (z > 0) & torch.isfinite(x).all(-1)
+    if min_fg is not None:
+        valid &= torch.nan_to_num(m, nan=0.0) >= min_fg
+    frame = f.unsqueeze(1).expand(-1, uv.shape[1])
+    return Candidates(
+        positions=x[valid].float(),
+        tokens=tok[valid].float(),
+        fg=torch.nan_to_num(m[valid], nan=0.0).clamp(0, 1).float(),
+        frame=frame[valid],
+        time=times.to(torch.float32)[frame[valid]],
+        pixel=uv[valid].float(),
+    )
 
 
 def _moving_candidates(depth, K, w2c, times, tokens, patch_centers, fg, keyframes, density: int,
@@ -126,12 +129,4 @@ def _moving_candidates(depth, K, w2c, times, tokens, patch_centers, fg, keyframe
     patch = torch.arange(gh * gw).repeat_interleave(sub.shape[2])  # token of each sub-point
     f = keyframes.long()
     uv = uv.expand(f.shape[0], -1, -1)
-    z = torch.stack([sample_nearest(depth[i], uv[j]) for j, i in enumerate(f.tolist())])  # loop over keyframes
-    m = torch.stack([sample_nearest(fg[i], uv[j]) for j, i in enumerate(f.tolist())])
-    x = unproject(K[f].unsqueeze(1).to(depth.dtype), w2c[f].unsqueeze(1).to(depth.dtype), uv, z)
-    valid = torch.isfinite(z) & (z > 0) & torch.isfinite(x).all(-1) & (torch.nan_to_num(m, nan=0.0) >= threshold)
-    frame = f.unsqueeze(1).expand(-1, uv.shape[1])
-    tok = tokens[f].reshape(f.shape[0], gh * gw, d)[:, patch]
-    return Candidates(positions=x[valid].float(), tokens=tok[valid].float(),
-                      fg=m[valid].clamp(0, 1).float(), frame=frame[valid],
-                      time=times.to(torch.float32)[frame[valid]], pixel=uv[valid].float())
+    return _lift(depth, K, w2c, times, fg, f, uv, tokens[f].reshape(f.shape[0], gh * gw, d)[:, patch], threshold)
