@@ -365,13 +365,13 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
         reporter.progress("nodes", 1, 1, nodes=nodes.count)
     device = pick_device(cfg.device)
     data = training_data(prep, device)
-    trainer = Trainer(data, nodes, cfg, out_dir, reporter, resume=resume,
-                      scene_extra={"source": {"clip": prep.source, "width": int(prep.frames.shape[2])},
-                                   "priors": prep.priors.sources, **_solve_extra(prep)})
     # the still plate (median training frame) beside every quality figure: a result that
     # lost everything that moves scores about this
-    trainer.still_plate = {"train": still_plate_psnr(prep.frames, prep.train_idx, prep.train_idx),
-                           "val": still_plate_psnr(prep.frames, prep.train_idx, prep.val_idx)}
+    plate = {"train": still_plate_psnr(prep.frames, prep.train_idx, prep.train_idx),
+             "val": still_plate_psnr(prep.frames, prep.train_idx, prep.val_idx)}
+    trainer = Trainer(data, nodes, cfg, out_dir, reporter, resume=resume,
+                      scene_extra={"source": {"clip": prep.source, "width": int(prep.frames.shape[2])},
+                                   "priors": prep.priors.sources, **_solve_extra(prep)}, still_plate=plate)
     return trainer.run()
 
 

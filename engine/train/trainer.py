@@ -121,10 +121,16 @@ class Trainer:
     reporter : Reporter, optional
     resume : bool
         Continue from ``out_dir/checkpoints/checkpoint.pt``.
+    scene_extra : dict, optional
+        Extra scene.json keys (source clip, priors, camera solve).
+    still_plate : dict, optional
+        ``{"train": dB, "val": dB}``: the still plate's PSNR, logged and recorded beside the
+        run's own (``engine.pipeline.still_plate_psnr``).
     """
 
     def __init__(self, data: TrainingData, nodes: B.NodeArrays, config: TrainConfig, out_dir,
-                 reporter: Reporter | None = None, resume: bool = False, scene_extra: dict | None = None):
+                 reporter: Reporter | None = None, resume: bool = False, scene_extra: dict | None = None,
+                 still_plate: dict | None = None):
         self.data = data.validate()
         self.nodes = nodes
         self.cfg = config.validate()
@@ -132,6 +138,7 @@ class Trainer:
         self.ckpt_path = self.out_dir / "checkpoints" / CHECKPOINT_NAME
         self.reporter = reporter or Reporter(quiet=True)
         self.scene_extra = scene_extra or {}
+        self.still_plate = still_plate
         self.device = data.images.device
         torch.manual_seed(self.cfg.seed)
         # bitwise resume on the CPU needs deterministic algorithms: a process-wide switch,
@@ -762,7 +769,7 @@ class Trainer:
         return idx[torch.linspace(0, len(idx) - 1, at_most).round().long()]
 
     def _log_quality(self, metrics: dict) -> None:
-        """One line per split: PSNR (masked where a prior exists) beside the still plate's."""
+        """One line per split: whole-image PSNR beside the still plate's."""
         plate = metrics.get("still_plate") or {}
         for key, split, name in (("eval_train", "train", "training frames"), ("eval", "val", "held-out frames")):
             ev = metrics.get(key) or {}
@@ -810,9 +817,8 @@ class Trainer:
         self.train()
         metrics = {"eval_init": initial, "eval": self.evaluate(), "eval_train": self.evaluate(self._train_sample())}
         metrics["iterations_per_s"] = round(self.step / max(self.train_seconds, 1e-9), 3)
-        plate = getattr(self, "still_plate", None)
-        if plate is not None:
-            metrics["still_plate"] = plate
+        if self.still_plate is not None:
+            metrics["still_plate"] = self.still_plate
         self._log_quality(metrics)
         path = self.export_bundle(metrics)
         CK.discard(self.ckpt_path)  # finished: a later --resume must not retrain over the bundle
