@@ -38,3 +38,42 @@ def test_bench_train_rows_are_json_with_phases():
         assert abs(parts - row["ms_step"]) < 0.05 * row["ms_step"] + 0.1
         assert row["bwd_raster"] + row["bwd_deform"] + row["bwd_torch"] <= row["backward"] + 0.1
 
+
+
+def test_bench_train_figures_are_what_the_trainer_did(monkeypatch):
+    """Known answers for the row's figures, measured from outside the bench: the timed window
+    runs exactly ``--steps`` training steps (loss evaluations counted here), ``its_per_s`` /
+    ``ms_step`` are those steps over that window's wall time (timed here around the trainer's
+    ``train()`` call), and ``gaussians`` / ``nodes`` are the trained model's own counts."""
+    import time
+
+    from engine.bench import train as bench
+    from engine.train.trainer import Trainer
+
+    calls = []  # one per Trainer.train() call: loss evaluations, wall s, model counts before/after
+    original_train, original_loss = Trainer.train, Trainer._loss
+
+    def counted_loss(self, f):
+        calls[-1]["steps"] += 1
+        return original_loss(self, f)
+
+    def timed_train(self):
+        calls.append({"steps": 0, "counts": (self.model.num_gaussians, self.model.num_nodes)})
+        t0 = time.perf_counter()
+        original_train(self)
+        calls[-1]["wall"] = time.perf_counter() - t0
+        calls[-1]["counts_after"] = (self.model.num_gaussians, self.model.num_nodes)
+
+    monkeypatch.setattr(Trainer, "_loss", counted_loss)
+    monkeypatch.setattr(Trainer, "train", timed_train)
+    steps, warmup = 6, 2
+    row = bench._worker({"clip": None, "width": 64, "gaussians": 1500, "nodes": 40, "frames": 12, "steps": steps,
+                         "warmup": warmup, "threads": None, "seed": 0, "device": "cpu"})
+    assert [c["steps"] for c in calls] == [warmup, steps], calls  # warm-up, then the timed window
+    timed = calls[-1]
+    assert row["steps"] == steps
+    assert row["its_per_s"] == pytest.approx(steps / timed["wall"], rel=0.05), (row["its_per_s"], timed)
+    assert row["ms_step"] == pytest.approx(1000.0 * timed["wall"] / steps, rel=0.05), (row["ms_step"], timed)
+    # the timed window neither densifies nor prunes: the counts are the model's all along
+    assert (row["gaussians"], row["nodes"]) == timed["counts"] == timed["counts_after"], (row, timed)
+    assert row["nodes"] == 40 and 0 < row["gaussians"] <= 1500
