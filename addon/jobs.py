@@ -82,6 +82,8 @@ class Job:
     ended: float | None = None
     #: when the last event arrived (a long silence after a finished stage is kernel compiling)
     last_event: float = field(default_factory=time.monotonic)
+    #: when the last progress event arrived (its ``eta_s`` counts down from there)
+    progress_at: float = field(default_factory=time.monotonic)
     #: seconds the process has printed nothing, once that reached the warning limit (else 0)
     silent_s: float = 0.0
     #: the watchdog's limit to stop the run (0: never), as it was at the last drain
@@ -121,6 +123,7 @@ class Job:
         self.last_event = time.monotonic()
         kind = event.get("event")
         if kind == "progress":
+            self.progress_at = self.last_event
             self.stage = str(event.get("stage", ""))
             self.step = _as_int(event.get("step"), 0)
             self.total = _as_int(event.get("total"), None)

@@ -4,7 +4,9 @@ The add-on starts the engine with ``--jsonl`` and reads one JSON object per stdo
 line. Every event carries ``"v"`` (:data:`PROTOCOL_VERSION`) and ``"event"``:
 
 ``progress``  ``stage`` (str), ``step`` (int), ``total`` (int or null), optional
-              ``eta_s`` and metrics such as ``loss``/``psnr``.
+              ``eta_s`` (measured, see :meth:`Reporter.progress`) and metrics such as
+              ``loss``/``psnr``. The stage ``compile`` is the Numba kernels loading or
+              compiling (engine/train/warmup.py).
 ``log``       ``level`` ("debug"|"info"|"warning"), ``message``.
 ``result``    ``bundle`` (path) and any command-specific fields; the last event of a
               successful run.
@@ -56,7 +58,8 @@ class Reporter:
         self.stream = stream if stream is not None else sys.stdout
         self.quiet = quiet
         self._bars: dict[str, Any] = {}
-        self._stage_start: dict[str, float] = {}
+        #: per stage: (monotonic time of its first report, that report's step, the last step)
+        self._stage_start: dict[str, tuple[float, int, int]] = {}
 
     # -- low level -------------------------------------------------------------------
     def emit(self, event: str, **fields: Any) -> None:
@@ -69,11 +72,21 @@ class Reporter:
 
     # -- events ----------------------------------------------------------------------
     def progress(self, stage: str, step: int, total: int | None = None, **metrics: Any) -> None:
-        """Report ``step`` of ``total`` in ``stage``; adds ``eta_s`` when it can."""
+        """Report ``step`` of ``total`` in ``stage``; adds ``eta_s`` when it can.
+
+        The ETA is measured: ``(seconds since the stage's first report) / (steps since it)
+        * (steps left)``. A stage's first report starts its clock and has no ETA: a stage
+        first reported at a step ``s > 0`` (its start was not reported) gets one from its
+        second report on, never a made-up ``0``. A step lower than the previous one
+        restarts the clock (a stage name used again)."""
         now = time.monotonic()
-        start = self._stage_start.setdefault(stage, now)
-        if total and step > 0 and "eta_s" not in metrics:
-            metrics["eta_s"] = round((now - start) / step * max(total - step, 0), 1)
+        clock = self._stage_start.get(stage)
+        if clock is None or step < clock[2]:
+            clock = (now, step, step)
+        self._stage_start[stage] = clock = (clock[0], clock[1], step)
+        start, first, _ = clock
+        if total and step > first and "eta_s" not in metrics:
+            metrics["eta_s"] = round((now - start) / (step - first) * max(total - step, 0), 1)
         if self.jsonl:
             self.emit("progress", stage=stage, step=int(step), total=None if total is None else int(total), **metrics)
             return

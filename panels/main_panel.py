@@ -4,6 +4,7 @@ Cancel) and the error box of a failed run."""
 
 from __future__ import annotations
 
+import math
 import time
 
 import bpy
@@ -22,20 +23,35 @@ def _format_eta(seconds) -> str:
 
 #: Log lines shown under a running job.
 LOG_LINES = 3
-#: Seconds of silence after a finished stage before the panel says kernels are compiling.
+#: Seconds of silence after a finished stage before the panel says the next one is being prepared.
 QUIET_S = 3.0
+#: What the box calls the engine's stages where their protocol name says little to an artist.
+STAGE_NAMES = {"compile": "compiling the engine's kernels"}
+#: A line under the progress bar for these stages (while they run).
+STAGE_HINTS = {"compile": "A first run compiles them (about a minute); later runs load them from the cache"}
+
+
+def stage_text(job) -> str:
+    """``"Stage: <name>"`` for the job box (:data:`STAGE_NAMES` where one is given)."""
+    return f"Stage: {STAGE_NAMES.get(job.stage, job.stage)}"
 
 
 def progress_lines(job, now: float) -> list[str]:
-    """Elapsed time and an ETA only when the engine has one; after a finished stage a
-    silence means the next one is starting (a first run compiles the engine's kernels,
-    about a minute on a CPU), which is said instead of a frozen "ETA 0:00"."""
+    """Elapsed time, the stage's hint (:data:`STAGE_HINTS`) and the engine's ETA, counted
+    down since it arrived (the engine measures it from the stage's rate; a stage without a
+    measured rate has none, and none is invented). A silence after a finished stage says
+    the next one is being prepared instead of a frozen "ETA 0:00"."""
     lines = [f"Elapsed {_format_eta(now - job.started)}"]
     stage_done = bool(job.total) and job.step >= job.total
     if stage_done and now - job.last_event > QUIET_S:
-        lines.append("Preparing the next stage (a first run compiles the engine's kernels: about a minute)")
-    elif job.eta_s is not None and job.eta_s > 0 and not stage_done:
-        lines.append(f"ETA {_format_eta(job.eta_s)}")
+        lines.append(f"Preparing the next stage (no progress for {int(now - job.last_event)} s)")
+        return lines
+    if not stage_done and job.stage in STAGE_HINTS:
+        lines.append(STAGE_HINTS[job.stage])
+    if job.eta_s is not None and not stage_done:
+        left = math.ceil(job.eta_s - max(now - job.progress_at, 0.0))
+        if left > 0:
+            lines.append(f"ETA {_format_eta(left)}")
     return lines
 
 
@@ -58,7 +74,7 @@ def draw_job(layout, job) -> None:
                 warn.label(text=line, icon="ERROR" if i == 0 else "BLANK1")
     col = box.column(align=True)
     if job.stage:
-        col.label(text=f"Stage: {job.stage}")
+        col.label(text=stage_text(job))
     steps = f"{job.step}/{job.total}" if job.total else (str(job.step) if job.stage else "")
     if job.running and hasattr(col, "progress"):
         col.progress(factor=job.factor, type="BAR", text=steps or "starting...")

@@ -271,6 +271,7 @@ def _finetune(args, reporter):
     from ..errors import Cancelled
     from ..train.config import TrainConfig
     from ..train.model import model_from_bundle
+    from ..train.warmup import warm_kernels
     from ._common import pick_device
 
     bundle = B.load_bundle(args.bundle)
@@ -283,6 +284,7 @@ def _finetune(args, reporter):
     views = training_views(bundle, args.clip, device, reporter)
     reporter.log(f"fine-tuning appearance of {model.num_gaussians} Gaussians on {len(views)} views, "
                  f"{model.num_nodes} nodes locked, {args.steps} steps")
+    warm_kernels(reporter, device, args.backend)  # the `compile` stage (a first run compiles)
     try:
         summary = finetune_appearance(model, views, args.steps, cfg, args.seed, args.backend, reporter)
     except KeyboardInterrupt:

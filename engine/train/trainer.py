@@ -32,6 +32,7 @@ from .model import DynamicScene
 from .phases import no_phase
 from .render import render_scene, scene_colors
 from .split import freeze_static_nodes, graph_within_class
+from .warmup import warm_kernels
 
 GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -649,6 +650,8 @@ class Trainer:
         # previous setting is restored on exit, for code outside the loop.
         previous_fill = torch.utils.deterministic.fill_uninitialized_memory
         torch.utils.deterministic.fill_uninitialized_memory = False
+        if self.step < cfg.steps:  # starts the stage's clock: the first logged step has a measured ETA
+            self.reporter.progress("train", self.step, cfg.steps)
         try:
             while self.step < cfg.steps:
                 if self._stop_requested:  # SIGINT/SIGTERM: stop at a step boundary
@@ -811,6 +814,9 @@ class Trainer:
         """Train, evaluate on held-out frames, write the bundle; return a summary."""
         self.reporter.log(f"training {self.model.num_gaussians} Gaussians, {self.model.num_nodes} nodes, "
                           f"{self.cfg.steps} steps ({self.cfg.preset})")
+        # the Numba kernels load (or, on a first run, compile) as their own progress stage,
+        # not inside the first render below
+        warm_kernels(self.reporter, self.device, self.cfg.backend)
         # held-out quality of the initialisation, so every run reports its own gain
         initial = self.evaluate() if self.step == 0 else self.initial_eval
         self.initial_eval = initial

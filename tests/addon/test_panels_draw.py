@@ -270,8 +270,8 @@ def test_panels_draw_after_file_load_with_job(extension, registered, tmp_path, c
 
 
 def test_job_box_is_honest_while_the_engine_is_quiet(extension, registered, tmp_path, clean_jobs):
-    """Issue #18.5: a finished stage followed by silence (first-run kernel compile) is not
-    'ETA 0:00'; the box shows the elapsed time and the last log lines."""
+    """Issue #18.5: a finished stage followed by silence is not 'ETA 0:00'; the box says
+    the next stage is being prepared and shows the elapsed time and the last log lines."""
     jobs, bridge = extension.addon.jobs, extension.addon.bridge
     main_panel = extension.panels.main_panel
     job = jobs.start("train", bridge.EngineProcess(fake_engine(tmp_path, "quiet", """
@@ -285,7 +285,7 @@ def test_job_box_is_honest_while_the_engine_is_quiet(extension, registered, tmp_
     main_panel.draw_job(Layout(box), job)
     texts = labels(box)
     assert not any(t.startswith("ETA") for t in texts), texts
-    assert any("compiles the engine's kernels" in t for t in texts), texts
+    assert any(t.startswith("Preparing the next stage") for t in texts), texts
     assert any(t.startswith("Elapsed ") for t in texts)
     assert any("MANI: 96 nodes" in t for t in texts)
     # a stage under way with a real estimate shows it
@@ -293,5 +293,40 @@ def test_job_box_is_honest_while_the_engine_is_quiet(extension, registered, tmp_
     box = []
     main_panel.draw_job(Layout(box), job)
     assert "ETA 1:15" in labels(box)
+    job.process.kill()
+    jobs.wait(job, timeout=10)
+
+
+def test_job_box_shows_the_engines_compile_stage(extension, registered, tmp_path, clean_jobs):
+    """Issue #18.5: the engine reports loading / compiling its kernels as the stage
+    ``compile`` (engine/train/warmup.py); the box names it, says what a first run costs,
+    shows the engine's measured ETA counting down, and the engine's log line after it."""
+    jobs, bridge = extension.addon.jobs, extension.addon.bridge
+    main_panel = extension.panels.main_panel
+    job = jobs.start("train", bridge.EngineProcess(fake_engine(tmp_path, "compiling", """
+        emit("progress", stage="nodes", step=1, total=1, eta_s=0.0)
+        emit("progress", stage="compile", step=0, total=5)
+        emit("progress", stage="compile", step=2, total=5, eta_s=30.0)
+        time.sleep(30)
+    """), cwd=tmp_path), label="Reconstruct")
+    assert wait_until(lambda: (jobs.drain(), job.step)[1] == 2, 15)
+    box: list = []
+    main_panel.draw_job(Layout(box), job)
+    texts = labels(box)
+    assert "Stage: compiling the engine's kernels" in texts, texts
+    assert any("first run compiles them" in t for t in texts), texts
+    assert not any(t.startswith("Preparing the next stage") for t in texts), texts
+    assert "ETA 0:30" in texts, texts
+    # the ETA counts down from when it arrived, and is never shown as 0:00
+    job.progress_at -= 12
+    assert "ETA 0:18" in main_panel.progress_lines(job, job.progress_at + 12)
+    assert not any(t.startswith("ETA") for t in main_panel.progress_lines(job, job.progress_at + 31))
+    job.apply({"event": "progress", "stage": "compile", "step": 5, "total": 5, "eta_s": 0.0})
+    job.apply({"event": "log", "level": "info", "message": "engine kernels compiled (40 compilations) in 41.0 s"})
+    box = []
+    main_panel.draw_job(Layout(box), job)
+    texts = labels(box)
+    assert not any(t.startswith("ETA") for t in texts), texts
+    assert any("engine kernels compiled" in t for t in texts), texts
     job.process.kill()
     jobs.wait(job, timeout=10)
