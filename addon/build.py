@@ -181,7 +181,8 @@ def moving_nodes(collection) -> list:
 
 
 def write_bundle_fcurves(empties, nodes, scene_desc) -> np.ndarray:
-    """Write the node splines of ``nodes`` on ``empties``; returns the key frames."""
+    """Write the node splines of ``nodes`` on ``empties`` (keyframes only on each node's
+    own keys, ``nodes.key_mask``); returns the key frames (all knots)."""
     tm = scene_desc["time"]
     fs, fe = tm["frame_start"], tm["frame_end"]
     frames, pos_t = fcurves.engine_keys_to_frames(nodes.key_times, nodes.pos_tangents, fs, fe)
@@ -191,7 +192,8 @@ def write_bundle_fcurves(empties, nodes, scene_desc) -> np.ndarray:
         pos_in = fcurves.engine_keys_to_frames(nodes.key_times, nodes.pos_tangents_in, fs, fe)[1]
     if nodes.rot_tangents_in is not None:
         rot_in = fcurves.engine_keys_to_frames(nodes.key_times, nodes.rot_tangents_in, fs, fe)[1]
-    fcurves.write_node_fcurves(empties, frames, nodes.pos_keys, pos_t, nodes.rot_keys, rot_t, pos_in, rot_in)
+    fcurves.write_node_fcurves(empties, frames, nodes.pos_keys, pos_t, nodes.rot_keys, rot_t, pos_in, rot_in,
+                               key_mask=nodes.key_mask)
     return frames
 
 

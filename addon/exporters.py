@@ -144,7 +144,7 @@ class SentEdits:
     path: Path | None  # nodes.npz written (None: nothing was edited, nothing written)
     backup: Path | None  # copy of the previous nodes.npz
     edited: list  # indices of the nodes whose splines changed
-    rekeyed: bool  # the shared key frames changed (a key added or moved on some node)
+    rekeyed: bool  # the shared knot times changed (a key added or removed at a frame no node had / has left)
 
 
 def _node_changed(keys, out, inn, ref_keys, ref_out, ref_in) -> np.ndarray:
@@ -159,16 +159,26 @@ def _node_changed(keys, out, inn, ref_keys, ref_out, ref_in) -> np.ndarray:
     return diff > EDIT_TOL * scale
 
 
+#: Frames closer than this are the same knot (F-curve key frames are float32).
+FRAME_TOL = 1e-4
+
+
 def edited_nodes(collection) -> tuple[bundle_io.NodeArrays, list, bool]:
     """The bundle's nodes with the edited splines read back from the collection's Empties.
 
-    Returns ``(nodes, edited, rekeyed)``. Nodes whose F-curves still match the bundle keep
-    their arrays bit for bit (no float32 round trip, no made-up in-tangents); only edited
-    nodes take the read-back keys, and get separate in-tangents only where their handles
-    are really broken. The bundle format has key times shared by all nodes, so a key
-    added on one Empty adds that key time to every node (``rekeyed``); the others are
-    then resampled at it along their unchanged curves.
+    Returns ``(nodes, edited, rekeyed)``. The knots of the result are the union of the
+    Empties' key frames (``nodes.npz`` has one ``key_times`` for all nodes). A node is
+    edited when its curve (values or tangents at any knot, beyond float32 noise) or its
+    set of keys changed. Unedited nodes keep their arrays bit for bit; where the union
+    gained a knot (``rekeyed``: an artist keyed one Empty at a new frame) they get an
+    exact split of their Hermite segment there (:mod:`engine.geometry.hermite_knots`), so
+    the engine evaluates the same curves, and ``key_mask`` marks it as not their key:
+    Blender shows no new key on them. Edited nodes take the read-back keys (their own
+    keyframes, the knots they lack split from their own curve) and get separate
+    in-tangents only where their handles are really broken.
     """
+    from ..engine.geometry.hermite_knots import resample_knots
+
     bdir = Path(collection["ms_bundle"])
     b = bundle_io.load_bundle(bdir)
     if b.nodes is None:
@@ -180,45 +190,54 @@ def edited_nodes(collection) -> tuple[bundle_io.NodeArrays, list, bool]:
     d = fcurves.read_node_fcurves(empties, resample=True)
     tm = b.scene["time"]
     fs, fe = tm["frame_start"], tm["frame_end"]
-    kt, pos_out = fcurves.frames_to_engine_keys(d["key_frames"], d["loc_tangents_out"], fs, fe)
-    _, pos_in = fcurves.frames_to_engine_keys(d["key_frames"], d["loc_tangents_in"], fs, fe)
-    _, rot_out = fcurves.frames_to_engine_keys(d["key_frames"], d["rot_tangents_out"], fs, fe)
-    _, rot_in = fcurves.frames_to_engine_keys(d["key_frames"], d["rot_tangents_in"], fs, fe)
-    n0 = b.nodes
-    arrays = n0.to_dict()
-    ref = {"pos_in": n0.pos_tangents if n0.pos_tangents_in is None else n0.pos_tangents_in,
-           "rot_in": n0.rot_tangents if n0.rot_tangents_in is None else n0.rot_tangents_in}
-    ref_frames = fcurves.engine_keys_to_frames(n0.key_times, n0.pos_tangents, fs, fe)[0]
-    rekeyed = len(ref_frames) != len(d["key_frames"]) or not np.allclose(ref_frames, d["key_frames"], atol=1e-4)
     span = float(fe - fs) or 1.0
-    if rekeyed:
-        edited = np.ones(n0.count, bool)
-        arrays.update(key_times=kt)
-    else:  # compare in per-frame units (what the artist sees in the Graph Editor)
-        kt = n0.key_times
-        edited = (_node_changed(d["loc_keys"], pos_out / span, pos_in / span, n0.pos_keys, n0.pos_tangents / span,
-                                ref["pos_in"] / span)
-                  | _node_changed(d["rot_keys"], rot_out / span, rot_in / span, n0.rot_keys,
-                                  n0.rot_tangents / span, ref["rot_in"] / span))
-    read = {"pos_keys": d["loc_keys"], "pos_tangents": pos_out, "rot_keys": d["rot_keys"], "rot_tangents": rot_out,
-            "pos_tangents_in": pos_in, "rot_tangents_in": rot_in}
-    base = {"pos_tangents_in": ref["pos_in"], "rot_tangents_in": ref["rot_in"]}
-    for key, value in read.items():
-        if rekeyed:
-            new = np.asarray(value, np.float32)
-        else:
-            new = np.array(arrays.get(key, base.get(key)), dtype=np.float32, copy=True)
-            new[edited] = value[edited]
-        arrays[key] = new
-    for key, out_key in (("pos_tangents_in", "pos_tangents"), ("rot_tangents_in", "rot_tangents")):
-        inn, out = arrays[key], arrays[out_key]
+    n0 = b.nodes
+    frames = d["key_frames"]
+    # the union's knots that are the bundle's keep its key times bit for bit
+    f0 = fcurves.engine_keys_to_frames(n0.key_times, n0.pos_tangents, fs, fe)[0]
+    hi = np.clip(np.searchsorted(f0, frames), 0, len(f0) - 1)
+    lo = np.clip(hi - 1, 0, len(f0) - 1)
+    near = np.where(np.abs(f0[hi] - frames) <= np.abs(f0[lo] - frames), hi, lo)
+    match = np.abs(f0[near] - frames) <= FRAME_TOL
+    kt = np.where(match, n0.key_times[near].astype(np.float64), fcurves.frames_to_engine_keys(frames, 0.0, fs, fe)[0])
+    rekeyed = not (match.all() and len(frames) == len(f0))
+    # the bundle's curves on those knots (engine units): bit for bit where knots are kept
+    ref = {}
+    for name, inn in (("pos", n0.pos_tangents_in), ("rot", n0.rot_tangents_in)):
+        keys, out = getattr(n0, f"{name}_keys"), getattr(n0, f"{name}_tangents")
+        inn = out if inn is None else inn
+        ref[name] = resample_knots(n0.key_times, kt, keys, out, inn) if rekeyed else (keys, out, inn)
+    own0 = np.where(match, n0.own_keys()[:, near], False)  # the bundle's keys on the new knots
+    own = d["own"].any(axis=1)  # [N, K]: a frame any channel of the node has a key on
+    # read back in engine units; compared in per-frame units (what the Graph Editor shows)
+    read = {"pos": (d["loc_keys"], d["loc_tangents_out"] * span, d["loc_tangents_in"] * span),
+            "rot": (d["rot_keys"], d["rot_tangents_out"] * span, d["rot_tangents_in"] * span)}
+    edited = (own != own0).any(axis=1)  # a key added or removed on the node
+    for name in ("pos", "rot"):
+        (k1, o1, i1), (k0, o0, i0) = read[name], ref[name]
+        edited |= _node_changed(k1, o1 / span, i1 / span, np.asarray(k0, np.float64),
+                                        np.asarray(o0, np.float64) / span, np.asarray(i0, np.float64) / span)
+    arrays = n0.to_dict()
+    arrays.pop("pos_tangents_in", None)
+    arrays.pop("rot_tangents_in", None)
+    arrays["key_times"] = kt
+    e = edited[:, None, None]
+    for name in ("pos", "rot"):
+        (k1, o1, i1), (k0, o0, i0) = read[name], ref[name]
+        keys, out, inn = (np.where(e, a1, a0).astype(np.float32) for a1, a0 in ((k1, k0), (o1, o0), (i1, i0)))
         # handles that read back equal (up to float32 noise) are not broken: one tangent
         same = np.abs(inn - out).max(axis=(1, 2)) <= EDIT_TOL * (1.0 + np.abs(out).max(axis=(1, 2)))
         fresh = edited & same
         inn[fresh] = out[fresh]
-        if np.array_equal(inn, out):
-            arrays.pop(key)
-    arrays = {k: (np.asarray(v, np.float32) if k not in ("bind_idx", "graph_idx") else v) for k, v in arrays.items()}
+        arrays[f"{name}_keys"], arrays[f"{name}_tangents"] = keys, out
+        if not np.array_equal(inn, out):
+            arrays[f"{name}_tangents_in"] = inn
+    mask = np.where(edited[:, None], own, own0)
+    arrays["key_mask"] = mask
+    if mask.all():
+        arrays.pop("key_mask")
+    arrays = {k: (np.asarray(v, np.float32) if k not in ("bind_idx", "graph_idx", "key_mask") else v)
+              for k, v in arrays.items()}
     nodes = bundle_io.NodeArrays.from_dict(arrays, bdir / bundle_io.NODES_FILE)
     return nodes, [int(i) for i in np.flatnonzero(edited)], bool(rekeyed)
 

@@ -85,27 +85,40 @@ def _fcurve_container(obj, create: bool):
     return None if bag is None else bag.fcurves
 
 
-def _bezier_handles(frames, values, tan_out, tan_in):
+def _key_spacing(frames, own):
+    """Handle x extents ``dl, dr [N, K]``: a third of the interval to the previous / next
+    key the node owns (``own [N, K]``); an end key mirrors its one interval, a lone key gets 1."""
+    k = frames.shape[0]
+    idx = np.broadcast_to(np.arange(k), own.shape)
+    prev = np.maximum.accumulate(np.where(own, idx, -1), axis=-1)
+    nxt = np.flip(np.minimum.accumulate(np.flip(np.where(own, idx, k), -1), axis=-1), -1)
+    # the previous / next owned key strictly before / after each knot
+    before = np.concatenate([np.full(own.shape[:-1] + (1,), -1), prev[..., :-1]], axis=-1)
+    after = np.concatenate([nxt[..., 1:], np.full(own.shape[:-1] + (1,), k)], axis=-1)
+    dl = np.where(before >= 0, frames - frames[np.clip(before, 0, k - 1)], np.nan)
+    dr = np.where(after < k, frames[np.clip(after, 0, k - 1)] - frames, np.nan)
+    dl, dr = np.where(np.isnan(dl), dr, dl), np.where(np.isnan(dr), dl, dr)
+    dl, dr = (np.where(np.isnan(d), 1.0, d / 3.0) for d in (dl, dr))
+    return dl, dr
+
+
+def _bezier_handles(frames, values, tan_out, tan_in, own=None):
     """Handle coordinates for one channel of many keys.
 
-    ``frames [K]``, ``values/tan_out/tan_in [..., K]`` -> ``left, right [..., K, 2]``.
-    End keys mirror the neighbouring interval (the handle that is never evaluated still
-    gets a sensible length for editing).
+    ``frames [K]``, ``values/tan_out/tan_in [N, C, K]``, ``own [N, K]`` (default all) ->
+    ``left, right [N, C, K, 2]``. A handle reaches a third of the way to the neighbouring
+    key the node owns; end keys mirror the neighbouring interval (the handle that is
+    never evaluated still gets a sensible length for editing).
     """
-    k = frames.shape[0]
-    if k > 1:
-        d = np.diff(frames)
-        dl = np.concatenate([d[:1], d]) / 3.0
-        dr = np.concatenate([d, d[-1:]]) / 3.0
-    else:
-        dl = dr = np.ones(1)
+    own = np.ones((values.shape[0], frames.shape[0]), bool) if own is None else np.asarray(own, bool)
+    dl, dr = (d[:, None, :] for d in _key_spacing(frames, own))  # [N, 1, K]
     left = np.stack([np.broadcast_to(frames - dl, values.shape), values - tan_in * dl], axis=-1)
     right = np.stack([np.broadcast_to(frames + dr, values.shape), values + tan_out * dr], axis=-1)
     return left, right
 
 
 def write_node_fcurves(objects, key_frames, loc_keys, loc_tangents, rot_keys, rot_tangents,
-                       loc_tangents_in=None, rot_tangents_in=None) -> None:
+                       loc_tangents_in=None, rot_tangents_in=None, key_mask=None) -> None:
     """Write location and quaternion F-curves for one Empty per node.
 
     Parameters
@@ -115,6 +128,12 @@ def write_node_fcurves(objects, key_frames, loc_keys, loc_tangents, rot_keys, ro
     loc_keys, loc_tangents : (N, K, 3) positions and d/dframe tangents.
     rot_keys, rot_tangents : (N, K, 4) quaternions (wxyz) and d/dframe tangents.
     loc_tangents_in, rot_tangents_in : optional incoming tangents (default: same as out).
+    key_mask : (N, K) bool, optional
+        Which knots are each node's own keys (``nodes.npz`` ``key_mask``; default all):
+        a node gets keyframes only there. The knots it does not own are exact splits of
+        its curve (``engine/geometry/hermite_knots.py``), so the Bézier between its own
+        keys is the same curve; its handles reach a third of the way to its own
+        neighbouring keys.
 
     Existing location/rotation_quaternion F-curves of these objects are replaced; the
     objects' ``rotation_mode`` becomes ``'QUATERNION'``. Handles are FREE at
@@ -133,7 +152,11 @@ def write_node_fcurves(objects, key_frames, loc_keys, loc_tangents, rot_keys, ro
     for path, (vals, tout, tin) in data.items():
         if vals.shape[:2] != (n, k):
             raise ValueError(f"{path} keys have shape {vals.shape}; expected ({n}, {k}, C)")
-    handles = {path: _bezier_handles(key_frames, v.transpose(0, 2, 1), to.transpose(0, 2, 1), ti.transpose(0, 2, 1))
+    own = np.ones((n, k), bool) if key_mask is None else np.asarray(key_mask, bool)
+    if own.shape != (n, k) or not own.any(axis=1).all():
+        raise ValueError(f"key_mask must be ({n}, {k}) with a key on every node")
+    handles = {path: _bezier_handles(key_frames, v.transpose(0, 2, 1), to.transpose(0, 2, 1), ti.transpose(0, 2, 1),
+                                     own)
                for path, (v, to, ti) in data.items()}  # each [N, C, K, 2]
     # float32 C-contiguous per (node, channel): foreach_set then copies without converting
     f32 = {}
@@ -143,9 +166,12 @@ def write_node_fcurves(objects, key_frames, loc_keys, loc_tangents, rot_keys, ro
         f32[path] = tuple(np.ascontiguousarray(a, dtype=np.float32) for a in (co, *handles[path]))
     ipo = np.full(k, _IPO_BEZIER, dtype=np.int32)
     free = np.full(k, _HANDLE_FREE, dtype=np.int32)
+    every = own.all(axis=1)
     for i, obj in enumerate(objects):  # per object and channel; keys go in bulk
         obj.rotation_mode = "QUATERNION"
         curves = _fcurve_container(obj, create=True)
+        cols = slice(None) if every[i] else np.flatnonzero(own[i])
+        m = k if every[i] else len(cols)
         for path, size in CHANNELS:
             co, left, right = f32[path]
             for c in range(size):
@@ -154,14 +180,14 @@ def write_node_fcurves(objects, key_frames, loc_keys, loc_tangents, rot_keys, ro
                     curves.remove(fc)
                 fc = curves.new(path, index=c)
                 kp = fc.keyframe_points
-                kp.add(k)
-                kp.foreach_set("co", co[i, c].ravel())
-                kp.foreach_set("interpolation", ipo)
+                kp.add(m)
+                kp.foreach_set("co", co[i, c, cols].ravel())
+                kp.foreach_set("interpolation", ipo[:m])
                 # FREE before update(): update() would otherwise recompute AUTO handles
-                kp.foreach_set("handle_left_type", free)
-                kp.foreach_set("handle_right_type", free)
-                kp.foreach_set("handle_left", left[i, c].ravel())
-                kp.foreach_set("handle_right", right[i, c].ravel())
+                kp.foreach_set("handle_left_type", free[:m])
+                kp.foreach_set("handle_right_type", free[:m])
+                kp.foreach_set("handle_left", left[i, c, cols].ravel())
+                kp.foreach_set("handle_right", right[i, c, cols].ravel())
                 fc.update()
 
 
@@ -206,14 +232,18 @@ def read_node_fcurves(objects, resample: bool = False) -> dict:
         frames instead of raising :class:`SplineMismatchError` (subclass of
         ``ValueError``; its message names the first odd object and channel). A curve's
         own keys keep their exact values and (possibly broken) handle slopes; at the
-        other frames Blender's ``fcurve.evaluate`` gives the value and a central
-        difference the slope, so the result is a finer spline through the same motion
-        (exact for handles at 1/3 spacing, as written by :func:`write_node_fcurves`).
+        other frames the Hermite spline through its own keys (the engine's reading of
+        the curve) gives the value and slope, an exact split of that segment
+        (:func:`engine.geometry.hermite_knots.fill_knots`, no Blender evaluation), so
+        the result is a finer spline through the same motion (Blender's own curve too
+        where the handles sit at 1/3 spacing, as :func:`write_node_fcurves` puts them).
 
     Returns
     -------
     dict with ``key_frames [K]``, ``loc_keys [N,K,3]``, ``loc_tangents_out``,
-    ``loc_tangents_in``, ``rot_keys [N,K,4]``, ``rot_tangents_out``, ``rot_tangents_in``.
+    ``loc_tangents_in``, ``rot_keys [N,K,4]``, ``rot_tangents_out``, ``rot_tangents_in``,
+    and ``own [N, 7, K]`` bool: which frames are keys of each curve (location x, y, z,
+    then rotation w, x, y, z).
     """
     n = len(objects)
     if n == 0:
@@ -247,14 +277,11 @@ def read_node_fcurves(objects, resample: bool = False) -> dict:
     if not odd:
         frames = ref
         _, vals, t_out, t_in = _slopes(np.stack(raws).reshape(n, 7, 3, len(ref), 2))  # [N, 7, K]
+        own = np.ones(vals.shape, bool)
     else:
-        frames = _merge_frames(np.concatenate([r[0, :, 0] for r in raws]).astype(np.float64))
-        vals = np.empty((n * 7, len(frames)))
-        t_out, t_in = np.empty_like(vals), np.empty_like(vals)
-        for j, (fc, r) in enumerate(zip(fcs, raws)):
-            vals[j], t_out[j], t_in[j] = _resample_curve(fc, _slopes(r), frames)
-        vals, t_out, t_in = (a.reshape(n, 7, -1) for a in (vals, t_out, t_in))
-    out = {"key_frames": frames}
+        vals, t_out, t_in, own, frames = _on_union(raws)
+        vals, t_out, t_in, own = (a.reshape(n, 7, -1) for a in (vals, t_out, t_in, own))
+    out = {"key_frames": frames, "own": own}
     start = 0
     for path, size in CHANNELS:
         prefix = "loc" if path == LOCATION else "rot"
@@ -276,32 +303,25 @@ def _merge_frames(frames):
     return f[keep]
 
 
-def _resample_curve(fc, own, frames):
-    """Values and in/out slopes of ``fc`` at ``frames``.
+def _on_union(raws):
+    """Every curve of ``raws`` (``[3, K_j, 2]`` each) on the union of their key frames:
+    ``vals, t_out, t_in [J, K]`` (float64), ``own [J, K]`` and the frames ``[K]``. A curve's
+    own keys keep their values and handle slopes; the other frames are exact splits of
+    the Hermite through its own keys (:func:`~engine.geometry.hermite_knots.fill_knots`)."""
+    from ..engine.geometry.hermite_knots import fill_knots
 
-    At the curve's own keys they are exact (key value, handle slopes); elsewhere the
-    curve is evaluated by Blender and differentiated with a five-point central
-    difference (step up to 1/4 frame, kept inside the segment), exact for cubics up to
-    Blender's float32 evaluation. Between its own keys the curve is a cubic in the frame
-    when the handles sit at 1/3 spacing, so the finer Hermite spline reproduces it.
-    """
-    own_f, own_v, own_to, own_ti = own
-    pos = np.clip(np.searchsorted(own_f, frames), 0, len(own_f) - 1)
-    near = np.clip(pos - 1, 0, len(own_f) - 1)
-    pick = np.where(np.abs(own_f[pos] - frames) <= np.abs(own_f[near] - frames), pos, near)
-    hit = np.abs(own_f[pick] - frames) <= _FRAME_TOL
-    vals = np.empty(len(frames))
-    t_out = np.empty(len(frames))
-    vals[hit], t_out[hit] = own_v[pick[hit]], own_to[pick[hit]]
-    t_in = t_out.copy()
-    t_in[hit] = own_ti[pick[hit]]
-    ev = fc.evaluate
-    gap = np.abs(own_f[pick] - frames)  # distance to the nearest own key
-    for j in np.flatnonzero(~hit):  # only the frames this curve has no key on
-        f = float(frames[j])
-        h = min(0.25, float(gap[j]) / 2.5)  # the stencil stays inside one segment
-        vals[j] = ev(f)
-        # five-point central difference: exact for the cubic segment, and a large step
-        # keeps Blender's float32 evaluation noise small
-        t_out[j] = t_in[j] = (8 * (ev(f + h) - ev(f - h)) - (ev(f + 2 * h) - ev(f - 2 * h))) / (12 * h)
-    return vals, t_out, t_in
+    frames = _merge_frames(np.concatenate([r[0, :, 0] for r in raws]).astype(np.float64))
+    k = len(frames)
+    counts = np.array([r.shape[1] for r in raws])
+    curve = np.repeat(np.arange(len(raws)), counts)
+    f, v, to, ti = (np.concatenate(a) for a in zip(*(_slopes(r) for r in raws)))
+    hi = np.clip(np.searchsorted(frames, f), 0, k - 1)
+    lo = np.clip(hi - 1, 0, k - 1)
+    col = np.where(np.abs(frames[hi] - f) <= np.abs(frames[lo] - f), hi, lo)  # nearest merged frame
+    vals = np.zeros((len(raws), k))
+    t_out, t_in = np.zeros_like(vals), np.zeros_like(vals)
+    own = np.zeros(vals.shape, bool)
+    vals[curve, col], t_out[curve, col], t_in[curve, col], own[curve, col] = v, to, ti, True
+    vals, t_out, t_in = (a[..., 0] for a in fill_knots(frames, own, vals[..., None], t_out[..., None],
+                                                            t_in[..., None]))
+    return vals, t_out, t_in, own, frames

@@ -226,7 +226,7 @@ def check_gaussians(g: GaussianArrays, path: str | os.PathLike | None = None) ->
 # Nodes (nodes.npz)
 # ----------------------------------------------------------------------------------
 _NODE_REQUIRED = ("centers", "radii", "key_times", "pos_keys", "pos_tangents", "rot_keys", "rot_tangents")
-_NODE_OPTIONAL = ("p_dyn", "bind_idx", "bind_w", "graph_idx", "pos_tangents_in", "rot_tangents_in")
+_NODE_OPTIONAL = ("p_dyn", "bind_idx", "bind_w", "graph_idx", "pos_tangents_in", "rot_tangents_in", "key_mask")
 
 
 @dataclasses.dataclass
@@ -246,6 +246,14 @@ class NodeArrays:
     graph_idx : (N, k) optional node neighbourhood graph (for ARAP).
     pos_tangents_in, rot_tangents_in : optional incoming tangents when they differ from
         the outgoing ones (broken Bezier handles edited in Blender).
+    key_mask : (N, K) bool, optional; absent means all True. False marks a knot that is
+        not one of the node's own keys but an exact split of its Hermite segment (value
+        and time derivative of the curve there, :mod:`engine.geometry.hermite_knots`):
+        Send Edits adds one to every other node when an artist keys one Empty at a new
+        frame, so the key times stay shared while the other curves are unchanged. The
+        engine evaluates every knot alike (the curve is the same); Blender gets keyframes
+        only where it is True. Every row has a True. Training writes none (all its knots
+        are trained); fine-tuning leaves ``nodes.npz`` as it is.
     """
 
     centers: np.ndarray
@@ -261,10 +269,17 @@ class NodeArrays:
     graph_idx: np.ndarray | None = None
     pos_tangents_in: np.ndarray | None = None
     rot_tangents_in: np.ndarray | None = None
+    key_mask: np.ndarray | None = None
 
     @property
     def count(self) -> int:
         return int(self.centers.shape[0])
+
+    def own_keys(self) -> np.ndarray:
+        """``[N, K]`` bool: the knots that are each node's own keys (:attr:`key_mask`, or all)."""
+        if self.key_mask is None:
+            return np.ones(self.pos_keys.shape[:2], bool)
+        return np.asarray(self.key_mask, bool)
 
     def to_dict(self) -> dict[str, np.ndarray]:
         out = {}
@@ -293,8 +308,14 @@ class NodeArrays:
         for key, shape in expect.items():
             if key in a and (a[key].shape != shape or n < 0 or k < 1):
                 raise InputError(f"array {key!r} has shape {a[key].shape}; expected {shape}", path, fix)
+        if "key_mask" in a:
+            mask = a["key_mask"]
+            if mask.dtype != np.bool_ or mask.shape != (n, k):
+                raise InputError(f"key_mask must be bool of shape {(n, k)}; got {mask.dtype} {mask.shape}", path, fix)
+            if n > 0 and not mask.any(axis=1).all():
+                raise InputError("key_mask has a node without any key (a row with no True)", path, fix)
         for key in a:
-            if key in ("bind_idx", "graph_idx"):
+            if key in ("bind_idx", "graph_idx", "key_mask"):
                 continue
             if not np.issubdtype(a[key].dtype, np.floating) or not np.isfinite(a[key]).all():
                 raise InputError(f"array {key!r} must be finite floating point", path, fix)

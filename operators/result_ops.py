@@ -86,8 +86,8 @@ def report_sent(op, sent) -> None:
         return
     msg = (f"Sent {len(sent.edited)} edited node(s) to {sent.path}; the previous file is in {sent.backup.parent}")
     if sent.rekeyed:
-        msg += (". The key frames changed, and the bundle's nodes share key frames, so every node was re-keyed "
-                "(unedited curves keep their shape)")
+        msg += (". The key frames changed: the other nodes got an exact split of their curves at the new key "
+                "times (same motion, no new keys on their Empties)")
     op.report({"INFO"}, msg)
 
 

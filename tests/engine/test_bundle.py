@@ -85,6 +85,9 @@ def test_bundle_round_trip(tmp_path):
     (lambda d: d.__setitem__("key_times", d["key_times"][::-1].copy()), "increasing"),
     (lambda d: d.__setitem__("centers", np.full((7, 3), np.nan)), "finite"),
     (lambda d: d.__setitem__("bind_idx", d["bind_idx"] + 100), "bind_idx"),
+    (lambda d: d.__setitem__("key_mask", np.ones(d["pos_keys"].shape[:2], np.float32)), "key_mask must be bool"),
+    (lambda d: d.__setitem__("key_mask", np.ones((7, 1), bool)), "key_mask must be bool"),
+    (lambda d: d.__setitem__("key_mask", np.zeros(d["pos_keys"].shape[:2], bool)), "without any key"),
 ])
 def test_node_validation(tmp_path, mutate, msg):
     arrays = _nodes().to_dict()
@@ -92,6 +95,17 @@ def test_node_validation(tmp_path, mutate, msg):
     np.savez(tmp_path / "nodes.npz", **arrays)
     with pytest.raises(InputError, match=msg):
         B.read_nodes(tmp_path / "nodes.npz")
+
+
+def test_key_mask_round_trips_and_defaults_to_all_keys(tmp_path):
+    nodes = _nodes()
+    assert nodes.key_mask is None and nodes.own_keys().all() and nodes.own_keys().shape == nodes.pos_keys.shape[:2]
+    mask = np.ones(nodes.pos_keys.shape[:2], bool)
+    mask[1:, 1] = False
+    B.write_nodes(tmp_path / "nodes.npz", B.NodeArrays.from_dict({**nodes.to_dict(), "key_mask": mask}))
+    back = B.read_nodes(tmp_path / "nodes.npz")
+    assert back.key_mask.dtype == np.bool_ and np.array_equal(back.key_mask, mask)
+    assert np.array_equal(back.own_keys(), mask)
 
 
 def test_pickled_node_file_is_refused(tmp_path):
