@@ -68,6 +68,8 @@ def test_fresh_scene_to_a_render(extension, registered, tmp_path, clean_jobs):
     assert wait_until(lambda: (jobs.drain(), job.completed)[1], 600, step=0.1), f"{job.stage} {job.step}"
     assert job.state == "finished", job.error_summary()
     assert job.callback_error is None, job.callback_error
+    # #18.5: the engine reported its kernels loading / compiling (the `compile` stage's log line)
+    assert any("engine kernels" in line for line in job.logs), list(job.logs)
     bundle = Path(job.result["bundle"])
     assert bundle == tmp_path / "results" / "shot"
 
