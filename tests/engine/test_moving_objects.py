@@ -56,23 +56,30 @@ def _gt_mask(scene, prep, i):
     return cv2.resize(m.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
 
 
-def test_dynamic_silhouette_overlaps_the_moving_objects_at_three_times(trained_large):
+def silhouette_iou(model, which, time, K, w2c, width, height, gt) -> float:
+    """IoU of the silhouette (alpha > 0.5) the Gaussians ``which [G] bool`` render at ``time``
+    through camera ``K``, ``w2c`` with the ground-truth mask ``gt [H, W] bool``."""
     from engine.train.render import render_scene
 
+    with torch.no_grad():
+        means, quats = model.deform(float(time))
+        out = render_scene(model, means, quats, torch.as_tensor(K, dtype=torch.float32),
+                           torch.as_tensor(w2c, dtype=torch.float32), int(width), int(height),
+                           extra=which.to(means.dtype).contiguous())
+    sil = out.extra[..., 0].numpy() > 0.5
+    return float((sil & gt).sum() / max((sil | gt).sum(), 1))
+
+
+def test_dynamic_silhouette_overlaps_the_moving_objects_at_three_times(trained_large):
     scene, prep, trainer = trained_large
     m, d = trainer.model, trainer.data
     assert m.is_split and int(m.gauss_dyn.sum()) > 100
     train = d.train_idx[torch.argsort(d.times[d.train_idx])]
     ious = []
-    with torch.no_grad():
-        for i in (train[1], train[len(train) // 2], train[-2]):  # three different times
-            i = int(i)
-            means, quats = m.deform(float(d.times[i]))
-            out = render_scene(m, means, quats, d.K[i], d.w2c[i], d.width, d.height,
-                               extra=m.gauss_dyn.to(means.dtype).contiguous())
-            sil = out.extra[..., 0].numpy() > 0.5
-            gt = _gt_mask(scene, prep, i)
-            ious.append((sil & gt).sum() / max((sil | gt).sum(), 1))
+    for i in (train[1], train[len(train) // 2], train[-2]):  # three different times
+        i = int(i)
+        ious.append(silhouette_iou(m, m.gauss_dyn, d.times[i], d.K[i], d.w2c[i], d.width, d.height,
+                                   _gt_mask(scene, prep, i)))
     assert min(ious) >= 0.6, ious
 
 
