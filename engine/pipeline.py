@@ -181,9 +181,18 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     if d_source == "weight-free":
         # the weight-free depth of a moving object is its surroundings' and changes as the
         # object crosses them: give each moving track one depth (engine/priors/dynamic_depth.py)
-        from .priors.dynamic_depth import track_consistent_depth
+        from .priors.dynamic_depth import ground_contact_depth, track_consistent_depth
 
-        train_depth, st = track_consistent_depth(pr.depth, pr.dynamic, pr.tracks.xy, pr.tracks.visible)
+        mode = (prior_config or PriorConfig()).moving_depth
+        if mode not in ("contact", "track"):
+            raise ValueError(f"PriorConfig.moving_depth must be 'contact' or 'track', not {mode!r}")
+        contact = None
+        if mode == "contact":
+            contact, cst = ground_contact_depth(pr.depth, pr.dynamic)
+            reporter.log(f"moving objects: ground contact found for {cst['with_contact']} of {cst['blobs']} "
+                         "moving blobs")
+        train_depth, st = track_consistent_depth(pr.depth, pr.dynamic, pr.tracks.xy, pr.tracks.visible,
+                                                 contact=contact, percentile=10.0 if mode == "contact" else 50.0)
         reporter.log(f"moving objects: one depth per moving track ({st['moving_tracks']} tracks, "
                      f"{st['painted_px']} pixels in {st['frames']} frames)")
     depth[order] = train_depth

@@ -31,7 +31,7 @@ from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
-ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth": 1, "dynamic": 4}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth": 1, "dynamic": 5}
 
 
 @dataclass
@@ -53,6 +53,10 @@ class PriorConfig:
     flow_fine: bool = True  # DIS tracks: fuse with the finest-scale flow (follows small fast objects; ~4x the flow time)
     dense_moving: bool = False  # tracks: re-seed at half the grid cell in moving regions (see docs/benchmarks.md)
     depth_backend: str = "sparse"
+    # weight-free depth of moving objects: 'contact' (ground contact + occlusion order, then
+    # one depth per track) | 'track' (one depth per track from the prior alone); see
+    # engine/priors/dynamic_depth.py
+    moving_depth: str = "contact"
     depth_model: str | None = None
     depth_path: str | None = None
     depth_width: int = 320

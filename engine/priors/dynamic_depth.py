@@ -44,8 +44,78 @@ def moving_tracks(xy: np.ndarray, visible: np.ndarray, dynamic: np.ndarray, thre
     return np.nan_to_num(med, nan=0.0) >= threshold
 
 
+def _first_static_below(depth: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """``[F, H, W]``: for every pixel, the depth of the first non-moving pixel with a known
+    depth strictly below it in its column (NaN where there is none). One pass over the rows,
+    vectorised over frames and columns."""
+    f, h, w = depth.shape
+    static = np.where(~moving & (depth > 0) & np.isfinite(depth), depth, np.nan).astype(np.float32)
+    out = np.full((f, h, w), np.nan, np.float32)
+    below = np.full((f, w), np.nan, np.float32)
+    for y in range(h - 1, -1, -1):  # bottom-up scan: rows, not pixels
+        out[:, y] = below
+        below = np.where(np.isfinite(static[:, y]), static[:, y], below)
+    return out
+
+
+def ground_contact_depth(depth: np.ndarray, dynamic: np.ndarray, threshold: float = 0.5,
+                         band_px: int = 3, min_px: int = 12, margin_px: int = 4) -> tuple[np.ndarray, dict]:
+    """The depth at which each moving blob of each frame touches the static scene below it.
+
+    Parameters
+    ----------
+    depth : float [F, H, W] weight-free depth (camera z; 0 = unknown), which sees the static
+        scene only; dynamic : float [F, H, W] dynamic prior in [0, 1].
+    threshold : a pixel is moving where ``dynamic >= threshold``.
+    band_px : the blob's contact rows: its lowest ``band_px`` rows.
+    min_px : blobs smaller than this (noise in the prior) get no contact depth.
+
+    Returns
+    -------
+    contact float32 [F, H, W]: on the pixels of each moving blob (8-connected), the median
+    over its lowest rows of the depth of the first static pixel below; NaN elsewhere and for
+    blobs that touch the bottom edge of the image (their contact is out of view). And stats
+    ``{"blobs", "with_contact"}``.
+
+    Image "down" is taken as the ground's direction (footage is shot about upright). A blob
+    hanging in the air gets the depth of the surface beneath it in the image, which for a
+    wall behind it is the prior's own value: the caller keeps the smaller of the two.
+    """
+    from scipy import ndimage
+
+    moving = dynamic >= threshold
+    grown = moving
+    if margin_px > 0:  # the prior's blob edge is ragged: look past a margin of it
+        grown = ndimage.binary_dilation(moving, structure=np.ones((1, 2 * margin_px + 1, 2 * margin_px + 1), bool))
+    below = _first_static_below(depth, grown)
+    f, h, w = depth.shape
+    contact = np.full((f, h, w), np.nan, np.float32)
+    stats = {"blobs": 0, "with_contact": 0}
+    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
+    for k in range(f):  # per frame, every blob at once through ndimage's labelled reductions
+        labels, n = ndimage.label(moving[k], structure=np.ones((3, 3), bool))
+        if n == 0:
+            continue
+        ids = np.arange(1, n + 1)
+        size = ndimage.sum_labels(np.ones((h, w)), labels, ids)
+        bottom = ndimage.maximum(rows, labels, ids).astype(np.int64)
+        lab_bottom = np.concatenate([[-1], bottom])[labels]
+        band = (labels > 0) & (rows >= lab_bottom - band_px + 1) & np.isfinite(below[k])
+        band_labels = np.where(band, labels, 0)
+        with np.errstate(all="ignore"):
+            med = np.asarray(ndimage.median(np.nan_to_num(below[k]), band_labels, ids), np.float64)
+        has_band = ndimage.sum_labels(band, band_labels, ids) > 0
+        ok = has_band & (size >= min_px) & (bottom < h - 1)
+        value = np.concatenate([[np.nan], np.where(ok, med, np.nan)]).astype(np.float32)
+        contact[k] = np.where(labels > 0, value[labels], np.nan)
+        stats["blobs"] += int(n)
+        stats["with_contact"] += int(ok.sum())
+    return contact, stats
+
+
 def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarray, visible: np.ndarray,
-                           threshold: float = 0.5, max_px: float | None = None) -> tuple[np.ndarray, dict]:
+                           threshold: float = 0.5, max_px: float | None = None,
+                           contact: np.ndarray | None = None, percentile: float = 10.0) -> tuple[np.ndarray, dict]:
     """Depth with one value per moving track, spread to the moving pixels of each frame.
 
     Parameters
@@ -55,6 +125,12 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
     threshold : a pixel / track is moving where the prior is at least this.
     max_px : moving pixels farther than this from every moving track visible in their
         frame keep their depth (default: 1/8 of the image diagonal).
+    percentile : which percentile of the depths seen along a track is its depth (10: the
+        nearest surface it was seen in front of, with some robustness; 50: the median).
+    contact : float [F, H, W] or None: a ground-contact depth of the moving blobs
+        (:func:`ground_contact_depth`, NaN = none); where given, a track's depth at a frame
+        is the smaller of it and the prior (occlusion order), and moving pixels far from
+        every track take it too.
 
     Returns
     -------
@@ -67,15 +143,23 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
     out = depth.astype(np.float32, copy=True)
     moving = moving_tracks(xy, visible, dynamic, threshold)
     stats = {"moving_tracks": int(moving.sum()), "painted_px": 0, "frames": 0}
+    if contact is not None:
+        # moving pixels no track reaches still stand on their contact (and in front of the wall)
+        far = np.isfinite(contact) & (dynamic >= threshold) & (out > 0)
+        out[far] = np.minimum(out[far], contact[far])
     if not moving.any():
         return out, stats
     mxy, mvis = xy[moving], visible[moving]
     z = _along_tracks(depth, mxy)
     z = np.where(mvis & (z > 0) & np.isfinite(z), z, np.nan)
+    if contact is not None:
+        zc = _along_tracks(contact, mxy)
+        z = np.where(np.isfinite(zc) & np.isfinite(z), np.minimum(z, zc), z)
     with np.errstate(all="ignore"):
-        # log-median: the typical depth of what the track saw, robust to the frames where
-        # the prior switched surface behind the object
-        z_track = np.exp(np.nanmedian(np.log(z), axis=1))
+        # a low percentile in log depth: the object is in front of everything the prior saw
+        # behind it along the track (occlusion order), robust to a few stray frames; the
+        # median (50) is the typical background depth, the former choice
+        z_track = np.exp(np.nanpercentile(np.log(z), percentile, axis=1))
     has = np.isfinite(z_track)
     for k in range(f):  # one KD-tree per frame; every pixel query of the frame is vectorised
         on = mvis[:, k] & has

@@ -187,6 +187,62 @@ def _multigap_residual(flows, K, w2c, depth, S, s, gaps=(1, 2, 4)):
     return num / np.maximum(den, 1e-6)
 
 
+PHOTO_FLOOR = 0.02  # colour residual scale floor (fraction of the [0, 1] range)
+
+
+def _photometric_residual(rgb, K, w2c, depth, S, gaps=(1, 2, 4)):
+    """Normalised colour residual of the static-scene hypothesis over frame gaps -> [F,h,w].
+
+    Each pixel of frame f is back-projected with the depth prior (which sees the static scene)
+    and looked up in frames f±k: where the static scene is what the pixel shows, the colours
+    agree; where a moving object covers the pixel at f -- or covered its static point at f±k --
+    they do not. Taking the smaller of the two residuals (f-k and f+k; "three-frame
+    differencing" with the camera motion compensated) keeps the object where it is at f and
+    drops the ghosts where it was at f±k. Unlike the flow residual this needs no
+    forward-backward consistent flow, so it sees thin fast parts (a swinging forearm) that
+    flow loses. Each gap's residual is divided by its per-frame robust scale (median + 1.4826
+    MAD, at least ``PHOTO_FLOOR``); the gaps are averaged.
+
+    rgb : uint8 [F,h,w,3] frames at working resolution; K [F,3,3], w2c [F,4,4] at full
+    resolution (``S`` maps K to working resolution); depth [F,H,W] full resolution.
+    """
+    import cv2
+
+    F, h, w = rgb.shape[:3]
+    img = np.stack([cv2.GaussianBlur(x.astype(np.float32) / 255.0, (3, 3), 0) for x in rgb])
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    pix = np.stack([xs + 0.5, ys + 0.5, np.ones_like(xs)], -1)
+    Ks = np.einsum("ij,fjk->fik", S, K); Kinv = np.linalg.inv(Ks); c2w = np.linalg.inv(w2c)
+    out = np.zeros((F, h, w), np.float32)
+    for f in range(F):  # per frame, whole-image warps (cv2.remap)
+        rays = _affine3(Kinv[f].astype(np.float32), np.zeros(3, np.float32), pix)
+        X = rays * cv2.resize(depth[f].astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)[..., None]
+        num = np.zeros((h, w), np.float32); den = np.zeros((h, w), np.float32)
+        for k in gaps:
+            sides = []
+            for g in (f - k, f + k):
+                if not 0 <= g < F:
+                    continue
+                rel = w2c[g] @ c2w[f]
+                pr = _affine3((Ks[g] @ rel[:3, :3]).astype(np.float32), (Ks[g] @ rel[:3, 3]).astype(np.float32), X)
+                uv = pr[..., :2] / np.maximum(pr[..., 2:], 1e-6) - 0.5
+                v = (pr[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
+                warped = cv2.remap(img[g], uv[..., 0], uv[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                sides.append((np.abs(warped - img[f]).mean(-1), v))
+            if not sides:
+                continue
+            r = np.where(sides[0][1], sides[0][0], np.inf)
+            for rr, vv in sides[1:]:
+                r = np.minimum(r, np.where(vv, rr, np.inf))
+            valid = np.isfinite(r)
+            if valid.sum() < 0.05 * valid.size:
+                continue
+            rv = r[valid][::4]; med = np.median(rv); mad = 1.4826 * np.median(np.abs(rv - med))
+            num += np.where(valid, r / max(med + mad, PHOTO_FLOOR), 0); den += valid
+        out[f] = num / np.maximum(den, 1e-6)
+    return out
+
+
 def _refill(frames, depth, dyn, S, max_width):
     """``depth`` re-densified from its static part only -> [F,H,W].
 
@@ -235,14 +291,22 @@ def _snap(m, guide, radius, eps=1e-3):
                      for f in range(len(m))]).astype(np.float32)
 
 
-def _segment(sc, t_win=5, lo=1.5, hi=4.0, close_px=15, trim_px=7):
+def _temporal_box(sc, t_win):
+    """Mean of ``sc [F,h,w]`` over a window of ``t_win`` frames (edges repeated)."""
+    F = len(sc)
+    r = t_win // 2
+    if r == 0:
+        return sc
+    pad = np.concatenate([sc[:1]] * r + [sc] + [sc[-1:]] * r)
+    return np.mean([pad[i:i + F] for i in range(2 * r + 1)], 0)
+
+
+def _segment(sc, t_win=5, lo=1.5, hi=4.0, close_px=15, trim_px=7, open_px=5):
     """Normalised residual [F,h,w] -> soft mask [F,h,w] (temporal box, hysteresis, morphology)."""
     import cv2
 
     F = len(sc)
-    r = t_win // 2  # temporal box over t_win frames
-    pad = np.concatenate([sc[:1]] * r + [sc] + [sc[-1:]] * r)
-    sc = np.mean([pad[i:i + F] for i in range(2 * r + 1)], 0)
+    sc = _temporal_box(sc, t_win)
 
     def ell(d):
         return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (max(3, int(d) | 1),) * 2)
@@ -252,7 +316,7 @@ def _segment(sc, t_win=5, lo=1.5, hi=4.0, close_px=15, trim_px=7):
         x = cv2.GaussianBlur(sc[f], (5, 5), 0)
         b = _hysteresis(x > lo, x > hi).astype(np.uint8)
         b = cv2.morphologyEx(b, cv2.MORPH_CLOSE, ell(close_px))
-        b = cv2.morphologyEx(b, cv2.MORPH_OPEN, ell(5))
+        b = cv2.morphologyEx(b, cv2.MORPH_OPEN, ell(open_px))
         b = _fill_holes(b)
         if trim_px:  # DIS smears object motion a few px into the background
             b = cv2.erode(b, ell(trim_px))
@@ -261,7 +325,8 @@ def _segment(sc, t_win=5, lo=1.5, hi=4.0, close_px=15, trim_px=7):
 
 
 def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, tex_eps=1e-3, reporter=None,
-                gaps=(1, 2, 4), lo=1.5, hi=4.0, t_win=5, close_px=15, trim_px=7, passes=2, source=None):
+                gaps=(1, 2, 4), lo=1.5, hi=4.0, t_win=5, close_px=7, trim_px=7, passes=2, source=None,
+                photometric=True):
     """Weight-free motion prior (see module docstring) -> float32 [F,H,W].
 
     With depth, ``passes`` segmentations (mask -> depth -> mask): each one after the first
@@ -288,6 +353,13 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
             m = _segment(sc, t_win, lo, hi, close_px, trim_px)
             if trim_px:
                 m = _snap(m, guide, trim_px)
+            if photometric:
+                # the colour residual is segmented on its own: no temporal box (it marks where
+                # the object is at f; a box would smear a fast one along its path), no trim and
+                # no snapping (nothing smears it; trim, a 5-px opening and the guided filter each
+                # erased thin parts such as a swinging forearm)
+                pm = _segment(_photometric_residual(guide, K, w2c, depth, S, gaps), 1, lo, hi, close_px, 0, 3)
+                m = np.maximum(m, _snap(pm, guide, 2) if trim_px else pm)
             out = np.clip(np.stack([cv2.resize(x, (W, H), interpolation=cv2.INTER_LINEAR) for x in m]), 0, 1)
             if reporter is not None:
                 reporter.progress("dynamic_mask", (i + 1) * F // npass, F)

@@ -167,19 +167,27 @@ def test_motion_mask_static_scene_flags_nothing():
 def test_motion_mask_refill_pass_undoes_leaked_depth(clip):
     """The moving square's depth leaked 8 px onto the plane around it (what the sparse fill does
     when a moving object carries anchors). The mask -> depth -> mask pass re-densifies the depth
-    from the static part of the first mask and flags less of that ring (measured: ring 0.69 ->
-    0.58, IoU 0.51 -> 0.56)."""
+    from the static part of the first mask and flags less of that ring.
+
+    With the flow residual alone and the former segmentation (5-frame temporal box, 15-px
+    closing: the setting the pass was built for) it is measured ring 0.69 -> 0.58, IoU
+    0.51 -> 0.56. With the defaults (photometric residual beside the flow's, no temporal box,
+    7-px closing) the first pass is already at IoU 0.56 / ring 0.55, and the second must not
+    undo that (measured 0.567 / 0.538)."""
     from engine.priors.motion import motion_mask
 
     frames, depth, mask, K, w2c = clip
     ring = np.stack([cv2.dilate(m.astype(np.uint8), np.ones((17, 17), np.uint8)) > 0 for m in mask]) & ~mask
     leaked = np.where(ring | mask, np.float32(scene.Z_SQ), depth).astype(np.float32)
-    res = {}
-    for passes in (1, 2):
-        pred = motion_mask(frames, K, w2c, leaked, passes=passes) > 0.5
-        res[passes] = ((pred & mask).sum((1, 2)) / (pred | mask).sum((1, 2)), pred[ring].mean())
-    assert res[2][0].min() >= 0.5 and res[2][0].mean() >= res[1][0].mean() + 0.03, res
-    assert res[2][1] <= res[1][1] - 0.05, res
+    former = dict(photometric=False, t_win=5, close_px=15)
+    for kw, gain in ((former, 0.03), ({}, 0.0)):
+        res = {}
+        for passes in (1, 2):
+            pred = motion_mask(frames, K, w2c, leaked, passes=passes, **kw) > 0.5
+            res[passes] = ((pred & mask).sum((1, 2)) / (pred | mask).sum((1, 2)), pred[ring].mean())
+        assert res[2][0].min() >= 0.5 and res[2][0].mean() >= res[1][0].mean() + gain, (kw, res)
+        assert res[2][1] <= res[1][1] - (0.05 if gain else 0.0), (kw, res)
+        assert res[2][0].mean() >= 0.55 and res[2][1] <= 0.6, (kw, res)
 
 
 def test_refill_fills_mask_from_static_surroundings():
