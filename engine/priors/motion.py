@@ -16,7 +16,12 @@ enclosed by the region (< 25 % of the image: slowly moving interiors such as a w
 show motion on their border), erosion by ``trim_px`` (DIS smears motion a few pixels into the
 background), a 5×5 blur and a guided filter with the RGB frame as guide (radius ``trim_px``,
 eps 1e-3: the mask edge snaps to the image edge). Structuring sizes are in working-resolution px.
-Then ``passes`` (2) = one mask -> depth -> mask pass: the depth is re-densified from its static
+Beside it (``photometric``, default on) a colour residual of the static-scene hypothesis
+(:func:`_photometric_residual`: each pixel warped to f±k with the depth prior and the relative
+pose, the smaller of the two colour differences, robustly normalised per gap) is segmented on
+its own -- no temporal box, no trim, a 3-px opening, a 2-px snap -- and OR-ed with the flow
+mask: flow is not forward-backward consistent on thin fast parts (a swinging forearm), which
+the flow mask therefore missed. Then ``passes`` (2) = one mask -> depth -> mask pass: the depth is re-densified from its static
 part only (every working pixel outside the mask is an anchor of the sparse prior's edge-aware
 fill; inside the mask it is filled from the static surroundings, no longer from anchors that sat
 on a moving object and leaked from there onto the background around it) and the residual is
