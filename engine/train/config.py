@@ -106,7 +106,7 @@ class TrainConfig:
                                          # training frames (0..1); -1 = each node's own source frame
     rebind_every: int = 200              # refresh binding every N steps (0 = never)
     sh_degree: int = 1
-    gaussians_per_frame: int = 2250      # back-projected at init from each keyframe (static pixels, with the split)
+    gaussians_per_frame: int = 3000      # back-projected at init from each keyframe (static pixels, with the split)
     init_keyframes: int = 8              # frames sampled for Gaussian initialisation
     max_gaussians: int = 30000           # budget cap for densification
 
