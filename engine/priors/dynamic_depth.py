@@ -97,7 +97,7 @@ def ground_contact_depth(depth: np.ndarray, dynamic: np.ndarray, threshold: floa
         if n == 0:
             continue
         ids = np.arange(1, n + 1)
-        size = ndimage.sum_labels(np.ones((h, w)), labels, ids)
+        size = np.bincount(labels.ravel(), minlength=n + 1)[1:]
         bottom = ndimage.maximum(rows, labels, ids).astype(np.int64)
         lab_bottom = np.concatenate([[-1], bottom])[labels]
         band = (labels > 0) & (rows >= lab_bottom - band_px + 1) & np.isfinite(below[k])

@@ -68,6 +68,16 @@ def _affine3(A, b, P):
     return np.stack([P[..., 0] * A[i, 0] + P[..., 1] * A[i, 1] + P[..., 2] * A[i, 2] + b[i] for i in range(3)], -1)
 
 
+def _camera_points(Kinv, depth, pix):
+    """Camera-space points ``[h,w,3]`` of the working-resolution pixels ``pix [h,w,3]``
+    (``Kinv`` at working resolution) at the full-resolution ``depth [H,W]``, area-resized."""
+    import cv2
+
+    h, w = pix.shape[:2]
+    rays = _affine3(Kinv.astype(np.float32), np.zeros(3, np.float32), pix)
+    return rays * cv2.resize(depth.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)[..., None]
+
+
 def _rigid_flow(X, Kg, rel, pix):
     """Flow [h,w,2] that the relative camera motion ``rel`` induces on camera-space points ``X [h,w,3]``."""
     pr = _affine3((Kg @ rel[:3, :3]).astype(np.float32), (Kg @ rel[:3, 3]).astype(np.float32), X)
@@ -161,8 +171,7 @@ def _multigap_residual(flows, K, w2c, depth, S, s, gaps=(1, 2, 4)):
     pix = np.stack([xs + 0.5, ys + 0.5, np.ones_like(xs)], -1)  # continuous coords
     num = np.zeros((F, h, w), np.float32); den = np.zeros((F, h, w), np.float32)
     for f in range(F):
-        rays = _affine3(Kinv[f].astype(np.float32), np.zeros(3, np.float32), pix)
-        X = rays * cv2.resize(depth[f].astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)[..., None]
+        X = _camera_points(Kinv[f], depth[f], pix)
         obs = []  # (gap k, target frame g, chained flow, valid)
         for sgn in (1, -1):
             acc = np.zeros((h, w, 2), np.float32); ok = np.ones((h, w), bool); g = f
@@ -220,8 +229,7 @@ def _photometric_residual(rgb, K, w2c, depth, S, gaps=(1, 2, 4)):
     Ks = np.einsum("ij,fjk->fik", S, K); Kinv = np.linalg.inv(Ks); c2w = np.linalg.inv(w2c)
     out = np.zeros((F, h, w), np.float32)
     for f in range(F):  # per frame, whole-image warps (cv2.remap)
-        rays = _affine3(Kinv[f].astype(np.float32), np.zeros(3, np.float32), pix)
-        X = rays * cv2.resize(depth[f].astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)[..., None]
+        X = _camera_points(Kinv[f], depth[f], pix)
         num = np.zeros((h, w), np.float32); den = np.zeros((h, w), np.float32)
         for k in gaps:
             sides = []
@@ -360,9 +368,9 @@ def motion_mask(frames, K, w2c, depth=None, max_width=320, k=3.0, min_px=1.0, te
                 m = _snap(m, guide, trim_px)
             if photometric:
                 # the colour residual is segmented on its own: no temporal box (it marks where
-                # the object is at f; a box would smear a fast one along its path), no trim and
-                # no snapping (nothing smears it; trim, a 5-px opening and the guided filter each
-                # erased thin parts such as a swinging forearm)
+                # the object is at f; a box would smear a fast one along its path), no trim, a
+                # 3-px opening and a 2-px snap (nothing smears it; the trim, a 5-px opening and
+                # the trim-wide guided filter each erased thin parts such as a swinging forearm)
                 pm = _segment(_photometric_residual(guide, K, w2c, depth, S, gaps), 1, lo, hi, close_px, 0, 3)
                 m = np.maximum(m, _snap(pm, guide, 2) if trim_px else pm)
             out = np.clip(np.stack([cv2.resize(x, (W, H), interpolation=cv2.INTER_LINEAR) for x in m]), 0, 1)
