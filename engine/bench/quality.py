@@ -126,7 +126,9 @@ def train_subprocess(clip, out, init: str, motion: str, cache, steps=None, threa
         elif isinstance(ev, dict) and ev.get("event") == "error":
             error = ev
     if code != 0 or result is None:
-        msg = (error or {}).get("message") or err_text[-1500:]
+        msg = (error or {}).get("message") or ""
+        if not msg or msg.startswith("internal error"):  # the child's traceback is on its stderr
+            msg = (msg + "\n" + err_text[-3000:]).strip()
         raise RuntimeError(f"train {init}+{motion} on {clip} failed ({code}): {msg}")
     return {**result, "wall_s": wall, "peak_rss_mb": rss}
 

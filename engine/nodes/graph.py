@@ -23,10 +23,11 @@ def node_graph(centers: torch.Tensor, k: int = 8) -> tuple[torch.Tensor, torch.T
     n = centers.shape[0]
     kk = min(k, n - 1)
     if kk <= 0:
-        return torch.zeros(n, 0, dtype=torch.long), torch.zeros(n, 0, dtype=centers.dtype)
+        return (torch.zeros(n, 0, dtype=torch.long, device=centers.device),
+                torch.zeros(n, 0, dtype=centers.dtype, device=centers.device))
     idx, d2 = knn_nodes(centers, centers, kk + 1)
     # Drop self: usually column 0, but with duplicate centres self may sit elsewhere.
-    not_self = idx != torch.arange(n).unsqueeze(1)
+    not_self = idx != torch.arange(n, device=idx.device).unsqueeze(1)
     order = torch.argsort((~not_self).to(torch.int8), dim=1, stable=True)[:, :kk]
     return idx.gather(1, order), d2.gather(1, order)
 
@@ -39,5 +40,5 @@ def node_radii(centers: torch.Tensor, k: int = 4, factor: float = 1.0, min_radiu
     """
     _, d2 = node_graph(centers, k)
     if d2.shape[1] == 0:
-        return torch.full((centers.shape[0],), 1.0, dtype=centers.dtype)
+        return torch.full((centers.shape[0],), 1.0, dtype=centers.dtype, device=centers.device)
     return (factor * d2.clamp_min(0).sqrt().mean(1)).clamp_min(min_radius)

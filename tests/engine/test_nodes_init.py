@@ -89,13 +89,23 @@ def test_spline_fit_recovers_translation_and_fallbacks():
     assert torch.allclose(keys3[3], centers[3].expand(6, 3))
 
 
-def test_graph_and_radii():
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"))]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_graph_and_radii(device):
+    """Also on CUDA: the trainer builds the graph of its (device) nodes; a CPU ``arange``
+    here stopped every CUDA training run in ``build_model``."""
     g = torch.Generator().manual_seed(0)
-    c = torch.cat([torch.rand(50, 3, generator=g) * 0.1, torch.rand(50, 3, generator=g) * 10 + 20])
+    c = torch.cat([torch.rand(50, 3, generator=g) * 0.1, torch.rand(50, 3, generator=g) * 10 + 20]).to(device)
     idx, d2 = node_graph(c, 6)
-    assert idx.shape == (100, 6) and not (idx == torch.arange(100).unsqueeze(1)).any()
+    assert idx.device == c.device and d2.device == c.device
+    assert idx.shape == (100, 6) and not (idx.cpu() == torch.arange(100).unsqueeze(1)).any()
     r = node_radii(c, 4)
+    assert r.device == c.device
     assert r[:50].max() < r[50:].min()  # dense cluster -> small radii
+    lone_idx, _ = node_graph(c[:1], 6)  # one node: no neighbours, same device
+    assert lone_idx.shape == (1, 0) and lone_idx.device == c.device and node_radii(c[:1]).device == c.device
 
 
 def test_nodeset_npz_roundtrip():
