@@ -3,9 +3,9 @@
 ``engine.bench nodes`` measures the *initial* nodes; this module measures what training
 left in ``nodes.npz`` (what Blender keys as F-curves). For every training camera of the
 bundle the node splines are evaluated at the camera's time and compared with the GT
-trajectories (``gt/trajectories.npz``) at that frame, by the same RBF-blended displacement
+trajectories (``gt/trajectories.npz``) at that frame, by the same RBF-blended node-motion
 protocol as :func:`engine.bench.nodes.evaluate_gt` (K=4 nearest nodes at reference frames
-first / middle / last). ``traj_ratio_dyn = traj_err_dyn / zero_motion_dyn``: 1 for nodes
+first / middle / last; each node's rotation turns the point's offset from it). ``traj_ratio_dyn = traj_err_dyn / zero_motion_dyn``: 1 for nodes
 that do not move, 0 for nodes that follow the ground truth; < 0.5 is "2x closer than zero
 motion".
 """
@@ -25,7 +25,8 @@ def _torch_nodes(nodes) -> types.SimpleNamespace:
     """The spline fields of a ``bundle.NodeArrays`` as float32 tensors (what the error needs)."""
     as_t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
     return types.SimpleNamespace(key_times=as_t(nodes.key_times), pos_keys=as_t(nodes.pos_keys),
-                                 pos_tangents=as_t(nodes.pos_tangents), radii=as_t(nodes.radii))
+                                 pos_tangents=as_t(nodes.pos_tangents), radii=as_t(nodes.radii),
+                                 rot_keys=as_t(nodes.rot_keys), rot_tangents=as_t(nodes.rot_tangents))
 
 
 def trajectory_error(nodes, points: np.ndarray, times: np.ndarray, dynamic: np.ndarray) -> dict:
@@ -34,7 +35,7 @@ def trajectory_error(nodes, points: np.ndarray, times: np.ndarray, dynamic: np.n
     Parameters
     ----------
     nodes : ``bundle.NodeArrays`` (numpy splines: key_times (K,), pos_keys/pos_tangents
-        (N, K, 3), radii (N,)).
+        (N, K, 3), rot_keys/rot_tangents (N, K, 4), radii (N,)).
     points : (M, F, 3) GT world positions at the F evaluated frames.
     times : (F,) engine times of those frames.
     dynamic : (M,) bool, the points on moving objects.

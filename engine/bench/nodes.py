@@ -224,15 +224,27 @@ def scene_gt(scene_dir, prep) -> dict:
 def _rbf_deform_error(nodes, points: np.ndarray, times: np.ndarray, k: int = 4) -> np.ndarray:
     """Mean over frames and reference frames of the node-predicted vs GT trajectory error.
 
-    points : (M, F, 3) GT. Returns (M,) errors in scene units.
+    Each GT point at a reference frame ``r`` binds to its ``k`` nearest nodes there (RBF
+    weights of the node radii) and is carried to every frame ``t`` by their motion
+    ``x(t) = Σ_i w_i [R_i(t) R_i(r)ᵀ (x(r) − p_i(r)) + p_i(t)]``: the nodes' turn counts, as
+    it does in the model (without rotation keys, or with identity ones, this is the
+    blended displacement ``x(r) + Σ_i w_i (p_i(t) − p_i(r))``).
+
+    nodes : key_times (K,), pos_keys/pos_tangents (N, K, 3), radii (N,), optional
+    rot_keys/rot_tangents (N, K, 4). points : (M, F, 3) GT. Returns (M,) errors in scene units.
     """
     from ..geometry.binding import knn_nodes
-    from ..geometry.hermite import hermite_eval
+    from ..geometry.hermite import hermite_eval, hermite_eval_quat
+    from ..geometry.quaternion import quat_to_matrix
 
     pts = torch.as_tensor(points).float()
     f = pts.shape[1]
-    pred_nodes = hermite_eval(nodes.key_times, nodes.pos_keys, nodes.pos_tangents,
-                              torch.as_tensor(times).float())  # [N, F, 3]
+    t = torch.as_tensor(times).float()
+    pred_nodes = hermite_eval(nodes.key_times, nodes.pos_keys, nodes.pos_tangents, t)  # [N, F, 3]
+    rot_keys = getattr(nodes, "rot_keys", None)
+    rot = None
+    if rot_keys is not None:
+        rot = quat_to_matrix(hermite_eval_quat(nodes.key_times, rot_keys, nodes.rot_tangents, t))  # [N, F, 3, 3]
     rho = nodes.radii.float().clamp_min(1e-6)
     errs = []
     for r in sorted({0, f // 2, f - 1}):  # reference frames
@@ -241,8 +253,13 @@ def _rbf_deform_error(nodes, points: np.ndarray, times: np.ndarray, k: int = 4) 
         w = torch.exp(-d2 / (2 * rho[idx] ** 2))
         w = torch.where(w.sum(1, keepdim=True) > 1e-12, w, torch.ones_like(w))  # far points: plain mean
         w = w / w.sum(1, keepdim=True)
-        disp = pred_nodes[idx] - pred_nodes[idx][:, :, r:r + 1]  # [M, kk, F, 3]
-        pred = pts[:, r:r + 1] + (w[..., None, None] * disp).sum(1)
+        off = pts[:, None, r] - pred_nodes[idx][:, :, r]  # [M, kk, 3] offset from each node at r
+        if rot is not None:  # R_i(t) R_i(r)^T off
+            rel = rot[idx] @ rot[idx][:, :, r:r + 1].transpose(-1, -2)  # [M, kk, F, 3, 3]
+            moved = (rel @ off[:, :, None, :, None])[..., 0]  # [M, kk, F, 3]
+        else:
+            moved = off.unsqueeze(2)
+        pred = (w[..., None, None] * (moved + pred_nodes[idx])).sum(1)  # [M, F, 3]
         errs.append((pred - pts).norm(dim=-1).mean(1))
     return torch.stack(errs).mean(0).numpy()
 

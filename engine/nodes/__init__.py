@@ -10,12 +10,13 @@ from dataclasses import dataclass, field
 
 import torch
 
+from ..geometry.hermite import catmull_rom_tangents
 from .baselines import farthest_point_sampling, tracklet_clusters, uniform_voxel_centres
 from .candidates import Candidates, build_candidates, choose_keyframes
 from .graph import node_graph, node_radii
 from .mani import ManiConfig, ManiResult, mani_compress
 from .nodeset import NodeSet
-from .trajectory import clean_tracks3d, fit_node_trajectories, lift_tracks
+from .trajectory import clean_tracks3d, fit_node_rotations, fit_node_trajectories, lift_tracks, node_frame_rotations
 
 __all__ = ["NodeInitConfig", "ManiConfig", "ManiResult", "assemble_nodeset", "NodeSet", "Candidates", "initialise_nodes", "build_candidates",
            "choose_keyframes", "mani_compress", "node_graph", "node_radii", "lift_tracks", "clean_tracks3d",
@@ -43,6 +44,7 @@ class NodeInitConfig:
     radius_k: int = 4              #: neighbours for the radius
     radius_factor: float = 1.0
     trajectory: str = "spline"
+    rotations: str = "tracks"      #: "tracks": rigid rotation of each node's tracks; "identity": the paper's start
     vis_threshold: float = 0.5
     edge_tolerance: float = 0.05   #: lifted samples on a depth edge (3×3 max/min ratio above 1 + this) are dropped
     clean_tracks: bool = True      #: split / drop / freeze / filter lifted tracks (``clean_tracks3d``)
@@ -118,20 +120,29 @@ def assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config: NodeInit
     key_times = torch.linspace(0, 1, max(2, config.num_keys))
     radii = node_radii(centers, config.radius_k, config.radius_factor)
     graph_idx, _ = node_graph(centers, config.graph_k)
+    if config.rotations not in ("tracks", "identity"):
+        raise ValueError(f"unknown rotation init {config.rotations!r}; expected 'tracks' or 'identity'")
+    rot_keys = torch.zeros(n, key_times.shape[0], 4)
+    rot_keys[..., 0] = 1.0
+    rot_tan = torch.zeros_like(rot_keys)
     if config.trajectory == "spline":
         frame = _snap_frame(src_time, times)
+        frame_rot = None
+        if config.rotations == "tracks":
+            frame_rot, frame_ok = node_frame_rotations(centers, frame, radii, tracks3d, config.k_tracks,
+                                                       config.support_radius)
+            rot_keys, _ = fit_node_rotations(frame_rot, frame_ok, times, key_times)
+            rot_tan = catmull_rom_tangents(key_times, rot_keys)
         pos_keys, pos_tan, support = fit_node_trajectories(
             centers, frame, radii, tracks3d, times, key_times, graph_idx,
             config.k_tracks, config.support_radius, config.smoothness, None, config.irls_iters,
-            config.fallback, max_residual_ratio=config.max_residual_ratio)
+            config.fallback, max_residual_ratio=config.max_residual_ratio, frame_rot=frame_rot)
     elif config.trajectory == "static":
         pos_keys = centers.unsqueeze(1).expand(-1, key_times.shape[0], -1).clone()
         pos_tan = torch.zeros_like(pos_keys)
         support = torch.zeros(n)
     else:
         raise ValueError(f"unknown trajectory init {config.trajectory!r}; expected 'spline' or 'static'")
-    rot_keys = torch.zeros(n, key_times.shape[0], 4)
-    rot_keys[..., 0] = 1.0
-    return NodeSet(centers.float(), radii.float(), key_times, pos_keys.float(), pos_tan.float(), rot_keys,
-                   torch.zeros_like(rot_keys), p_dyn.float(), graph_idx, src_time.float(), config.method,
+    return NodeSet(centers.float(), radii.float(), key_times, pos_keys.float(), pos_tan.float(), rot_keys.float(),
+                   rot_tan.float(), p_dyn.float(), graph_idx, src_time.float(), config.method,
                    {"support": support})

@@ -3,8 +3,10 @@
 Source frame: a node's centre ``c_i`` is its candidate position (MANI: its cluster's
 medoid), observed at that candidate's source time ``t_i`` snapped to a frame. Tracks near
 the node *at that frame* vote with their displacement since that frame, so
-``p_i(t_i) ≈ c_i``. Rotations start at identity. Training then takes canonical centres
-at one shared time (``engine.train.init_model.common_canonical_nodes``).
+``p_i(t_i) ≈ c_i``. Rotations (:func:`fit_node_rotations`) are the rigid rotation of the
+same tracks since that frame (identity there), or identity everywhere (the paper's start).
+Training then takes canonical centres and rotations at one shared time
+(``engine.train.init_model.common_canonical_nodes``).
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import torch.nn.functional as F
 from ..geometry.binding import knn_nodes
 from ..geometry.camera import unproject
 from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_fit
+from ..geometry.quaternion import quat_from_matrix, quat_normalize
+from ..geometry.rigid import weighted_kabsch
 
 
 def lift_tracks(tracks_xy: torch.Tensor, tracks_vis: torch.Tensor, depth: torch.Tensor, K: torch.Tensor,
@@ -179,7 +183,7 @@ def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, rad
                           graph_idx: torch.Tensor | None = None, k_tracks: int = 8,
                           support_radius: float = 2.0, smoothness: float = 1e-2, huber: float | None = None,
                           irls_iters: int = 3, fallback: str = "graph", fallback_rounds: int = 10,
-                          max_residual_ratio: float | None = 1.0):
+                          max_residual_ratio: float | None = 1.0, frame_rot: torch.Tensor | None = None):
     """Least-squares Hermite position keys per node from nearby lifted tracks.
 
     Each node takes its ``k_tracks`` nearest tracks at its source frame within
@@ -189,12 +193,16 @@ def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, rad
     ``smoothness`` (relative to the total sample weight) keeps weakly supported nodes
     still. Nodes without any supporting sample take the support-weighted mean displacement
     of their graph neighbours (``fallback="graph"``, propagated ``fallback_rounds`` times)
-    or stay static (``"static"``).
+    or stay static (``"static"``). With ``frame_rot`` (:func:`node_frame_rotations`) a track
+    places the node where the turned offset from it puts it, ``x_j(f) + R_i(f)(c_i − a_j)``
+    (``a_j`` its position at the source frame), instead of shifting the centre by the
+    track's displacement: on a turning part the two differ by the turn of that offset.
 
     Parameters
     ----------
     centers : (N, 3); source_frame : (N,) long; radii : (N,); tracks3d : (P, F, 3) NaN=missing;
-    times : (F,); key_times : (K,); graph_idx : (N, k) for the graph fallback.
+    times : (F,); key_times : (K,); graph_idx : (N, k) for the graph fallback;
+    frame_rot : (N, F, 3, 3) or None.
 
     Returns
     -------
@@ -210,7 +218,11 @@ def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, rad
         return _finish(centers, disp_keys, support, key_times, graph_idx, fallback, fallback_rounds)
     tr, wts = _support_tracks(centers, source_frame, radii, tracks3d, kk, support_radius)
     anchor = tracks3d[tr, source_frame.unsqueeze(1)]  # [N, k, 3] (NaN where no track)
-    samples = tracks3d[tr] - anchor.unsqueeze(2)
+    samples = tracks3d[tr] - anchor.unsqueeze(2)  # [N, k, F, 3]
+    if frame_rot is not None:  # x_j(f) + R(f)(c - a_j) - c = (x_j(f) - a_j) + (R(f) - I)(c - a_j)
+        off = centers.unsqueeze(1) - anchor  # [N, k, 3]
+        turn = torch.einsum("nfij,nkj->nkfi", frame_rot - torch.eye(3), off)
+        samples = samples + turn
     valid = torch.isfinite(samples).all(-1) & (wts.unsqueeze(-1) > 0)  # [N, k, F]
     support = (wts.unsqueeze(-1) * valid).sum((1, 2))
     s = samples.permute(0, 2, 1, 3).reshape(n, f * kk, 3)  # sample order: time-major
@@ -252,3 +264,84 @@ def _finish(centers, disp_keys, support, key_times, graph_idx, fallback, rounds)
         disp_keys = disp
     keys = centers.unsqueeze(1) + disp_keys
     return keys, catmull_rom_tangents(key_times, keys), support
+
+
+def _fill_along(x: torch.Tensor, ok: torch.Tensor, dim: int) -> torch.Tensor:
+    """Fill entries of ``x`` where ``ok`` is False with the nearest earlier ``ok`` entry along
+    ``dim`` (later one before the first); all-False slices are left as they are.
+    ``x [..., L, C]`` with ``dim`` the L axis (negative), ``ok [..., L]``."""
+    n = ok.shape[dim]
+    ar = torch.arange(n, device=ok.device).expand_as(ok)
+    last = torch.where(ok, ar, torch.full_like(ar, -1)).cummax(dim).values
+    first_ok = torch.where(ok, ar, torch.full_like(ar, n)).flip(dim).cummin(dim).values.flip(dim)
+    src = torch.where(last >= 0, last, first_ok).clamp(max=n - 1)
+    return torch.gather(x, dim - 1, src.unsqueeze(-1).expand_as(x))
+
+
+def node_frame_rotations(centers: torch.Tensor, source_frame: torch.Tensor, radii: torch.Tensor,
+                         tracks3d: torch.Tensor, k_tracks: int = 8, support_radius: float = 2.0,
+                         min_tracks: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-frame rotation of each node's supporting tracks since its source frame.
+
+    The supporting tracks are those of :func:`fit_node_trajectories` (the node's
+    ``k_tracks`` nearest at its source frame, RBF weights); per frame a weighted Kabsch fit
+    of their positions at the source frame to those at that frame gives ``R_i(f)`` (the
+    identity at the source frame). Frames with fewer than ``min_tracks`` usable tracks, or
+    collinear ones, are not ``ok`` and hold the identity.
+
+    Returns ``R [N, F, 3, 3]`` (frames in ``tracks3d`` order) and ``ok [N, F]``.
+    """
+    n = centers.shape[0]
+    p, f, _ = tracks3d.shape
+    kk = min(k_tracks, p)
+    if kk < min_tracks or n == 0:
+        return torch.eye(3).expand(n, f, 3, 3).clone(), torch.zeros(n, f, dtype=torch.bool)
+    tr, wts = _support_tracks(centers, source_frame, radii, tracks3d, kk, support_radius)
+    dst = tracks3d[tr].permute(0, 2, 1, 3)  # [N, F, k, 3]
+    src = tracks3d[tr, source_frame.unsqueeze(1)].unsqueeze(1).expand_as(dst)
+    R, _, ok = weighted_kabsch(src, dst, wts.unsqueeze(1).expand(n, f, kk), min_tracks)
+    return R, ok
+
+
+def fit_node_rotations(frame_rot: torch.Tensor, frame_ok: torch.Tensor, times: torch.Tensor,
+                       key_times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotation keys per node from its per-frame rotations (:func:`node_frame_rotations`).
+
+    A rolling ball or a swinging limb turns its surface; nodes that only translate carry
+    their Gaussians' texture without turning it, and the photometric gradient alone does
+    not find rotations of tens of degrees (docs/benchmarks.md, "Moving objects").
+    Frames that are not ``ok`` take the nearest fitted frame; quaternions are made
+    sign-continuous in time and each key is the hat-weighted mean (over the key spacing)
+    of the fitted frames around it (a steady turn is kept exactly inside the clip; the end
+    keys see one side of their window and lag by about a third of a frame's turn).
+
+    Parameters
+    ----------
+    frame_rot : (N, F, 3, 3); frame_ok : (N, F) bool; times : (F,); key_times : (K,) increasing.
+
+    Returns
+    -------
+    rot_keys : (N, K, 4) unit quaternions (w, x, y, z); rotated : (N,) bool, nodes with at
+    least one fitted frame (the others keep the identity).
+    """
+    n, f = frame_ok.shape
+    k_n = key_times.shape[0]
+    ident = torch.zeros(n, k_n, 4)
+    ident[..., 0] = 1.0
+    if n == 0 or f == 0:
+        return ident, torch.zeros(n, dtype=torch.bool)
+    order = torch.argsort(times.float(), stable=True)  # work in time order
+    ok = frame_ok[:, order]
+    q = _fill_along(quat_from_matrix(frame_rot[:, order]), ok, -1)  # [N, F, 4]
+    # sign continuity along time: flip where a frame's quaternion points away from the previous one
+    dots = (q[:, 1:] * q[:, :-1]).sum(-1)
+    flips = torch.cat([torch.ones(n, 1), torch.where(dots < 0, -1.0, 1.0)], 1).cumprod(1)
+    q = q * flips.unsqueeze(-1)
+    t_sorted = times.float()[order]
+    spacing = (key_times[1:] - key_times[:-1]).clamp_min(1e-6).min() if k_n > 1 else torch.tensor(1.0)
+    hat = (1.0 - (t_sorted.unsqueeze(0) - key_times.float().unsqueeze(1)).abs() / spacing).clamp_min(0)  # [K, F]
+    wk = hat.unsqueeze(0) * ok.float().unsqueeze(1)  # [N, K, F]
+    keys = torch.einsum("nkf,nfc->nkc", wk, q)
+    keys = _fill_along(quat_normalize(keys), wk.sum(-1) > 0, -1)
+    rotated = ok.any(1)
+    return torch.where(rotated[:, None, None], quat_normalize(keys), ident), rotated

@@ -99,6 +99,8 @@ class TrainConfig:
     dynamic_gaussians: int = 6000        # Gaussians seeded on moving pixels, spread over all training frames
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
+    node_rotations: str = "tracks"       # initial node rotations: "tracks" (rigid rotation of each node's lifted
+                                         # tracks; a rolling or swinging part turns its texture) or "identity"
     radius_k: int = 4                    # node RBF radius from the distance to this many nearest nodes
     radius_factor: float = 1.0           # ... times this factor
     bind_k: int = 4                      # nodes per Gaussian (K in the paper)
@@ -164,6 +166,8 @@ class TrainConfig:
             bad("motion", f"must be one of {MOTION_MODELS}")
         if self.motion_init not in MOTION_INITS:
             bad("motion_init", f"must be one of {MOTION_INITS}")
+        if self.node_rotations not in ("tracks", "identity"):
+            bad("node_rotations", "must be tracks or identity")
         if self.device not in ("auto", "cpu", "cuda"):
             bad("device", "must be auto, cpu or cuda")
         if self.backend not in ("auto", "reference", "cpu", "gsplat"):

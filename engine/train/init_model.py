@@ -185,10 +185,12 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         # static nodes rest where they were seen (their keys never train)
         rest = centers.unsqueeze(1).expand_as(pos_keys)
         pos_keys = torch.where(node_dyn[:, None, None], pos_keys, rest)
+        rot_keys = torch.where(node_dyn[:, None, None], rot_keys, _identity_quats(rot_keys))
     if cfg.motion != "mlp" and cfg.canonical_time >= 0:
         pos_tan = as_t(nodes.pos_tangents) if node_dyn is None else None
         centers, radii, graph = common_canonical_nodes(data, key_times, pos_keys, pos_tan, cfg.canonical_time, graph,
                                                        cfg.radius_k, cfg.radius_factor)
+        rot_keys = canonical_rotations(data, key_times, rot_keys, cfg.canonical_time)
     if node_dyn is not None and graph is not None:
         graph = graph_within_class(centers, node_dyn, graph.shape[1])
     if cfg.motion == "per_frame":
@@ -198,7 +200,7 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         ft = torch.unique(data.times[data.train_idx]).to(dt)
         pos_tan = as_t(nodes.pos_tangents) if node_dyn is None else catmull_rom_tangents(key_times, pos_keys)
         pos_keys = hermite_eval(key_times, pos_keys, pos_tan, ft)
-        rot_keys = hermite_eval_quat(key_times, rot_keys, as_t(nodes.rot_tangents), ft)
+        rot_keys = hermite_eval_quat(key_times, rot_keys, catmull_rom_tangents(key_times, rot_keys), ft)
         key_times = ft
     # Nodes alone first (one dummy Gaussian) to map observed points to canonical space.
     probe = DynamicScene(centers[:1].clone(), torch.zeros(1, 3, device=dev), torch.ones(1, 3, device=dev),
@@ -244,9 +246,10 @@ def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys
     blend — on a part moving more than its width between keyframes (a forearm) its
     Gaussians lag. Taking every centre at one time ``t_c`` (the training frame nearest
     ``t_rel`` of the way through the training frames) makes canonical space the scene at
-    ``t_c``. With identity rotations (every initialiser) the node transforms at any ``t``
-    are unchanged in meaning (translation ``pos(t) - c``), radii and the ARAP graph are
-    recomputed from the new centres (at ``t_c`` neighbours are true neighbours).
+    ``t_c``. The node transforms keep their meaning once the rotation keys are re-based to
+    ``t_c`` too (:func:`canonical_rotations`; identity keys stay identity); radii and the
+    ARAP graph are recomputed from the new centres (at ``t_c`` neighbours are true
+    neighbours).
 
     key_times [K], pos_keys / pos_tangents [N, K, 3] (tangents None: Catmull-Rom of the keys)
     -> centres [N, 3], radii [N], graph [N, k] (``None`` in, ``None`` out).
@@ -256,13 +259,41 @@ def common_canonical_nodes(data: TrainingData, key_times: torch.Tensor, pos_keys
 
     if pos_tangents is None:
         pos_tangents = catmull_rom_tangents(key_times, pos_keys)
-    times = torch.sort(data.times[data.train_idx].to(pos_keys.dtype)).values
-    t_c = times[int(round(t_rel * (len(times) - 1)))].reshape(1)
+    t_c = _canonical_time(data, t_rel, pos_keys.dtype)
     centers = hermite_eval(key_times, pos_keys, pos_tangents, t_c)[:, 0]
     radii = node_radii(centers, radius_k, radius_factor)  # the run's radius settings, as the initialiser's
     if graph is not None:
         graph = node_graph(centers, graph.shape[1])[0]
     return centers, radii, graph
+
+
+def _canonical_time(data: TrainingData, t_rel: float, dtype) -> torch.Tensor:
+    """The training frame time ``t_rel`` of the way through the training frames, ``[1]``."""
+    times = torch.sort(data.times[data.train_idx].to(dtype)).values
+    return times[int(round(t_rel * (len(times) - 1)))].reshape(1)
+
+
+def _identity_quats(like: torch.Tensor) -> torch.Tensor:
+    ident = torch.zeros_like(like)
+    ident[..., 0] = 1
+    return ident
+
+
+def canonical_rotations(data: TrainingData, key_times: torch.Tensor, rot_keys: torch.Tensor,
+                        t_rel: float) -> torch.Tensor:
+    """Rotation keys relative to the canonical time (see :func:`common_canonical_nodes`).
+
+    An initialiser's rotations are relative to each node's source frame; with the centres
+    taken at ``t_c`` the node transform ``R_i(t)(x - c_i) + p_i(t)`` must be the identity
+    there, so ``q_i'(t) = q_i(t) ⊗ q_i(t_c)⁻¹``. Identity keys stay identity.
+    ``key_times [K]``, ``rot_keys [N, K, 4]`` -> ``[N, K, 4]``.
+    """
+    from ..geometry.hermite import catmull_rom_tangents, hermite_eval_quat
+    from ..geometry.quaternion import quat_conj, quat_mul, quat_normalize
+
+    t_c = _canonical_time(data, t_rel, rot_keys.dtype)
+    q_c = hermite_eval_quat(key_times, rot_keys, catmull_rom_tangents(key_times, rot_keys), t_c)  # [N, 1, 4]
+    return quat_normalize(quat_mul(rot_keys, quat_conj(quat_normalize(q_c))))
 
 
 @torch.no_grad()

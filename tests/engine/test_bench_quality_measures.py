@@ -172,3 +172,35 @@ def test_bundle_nodes_on_the_ground_truth_score_near_zero_on_a_generated_scene(t
     assert frozen["traj_ratio_dyn"] == pytest.approx(1.0, abs=1e-4)
     assert good["zero_motion_dyn"] == pytest.approx(frozen["zero_motion_dyn"])
     assert good["traj_ratio_dyn"] < 0.1, good  # measured 0.05
+
+
+def test_trajectory_error_counts_the_nodes_turn():
+    """A spinning disc: nodes that follow its centre *and* turn with it carry every point of it;
+    the same nodes without their rotation leave the rim behind (the measure used to ignore
+    rotation keys, so a rolling ball's nodes could not score better than translating ones)."""
+    from engine.geometry.quaternion import quat_from_axis_angle
+
+    import torch
+
+    F = 12
+    t = np.linspace(0, 1, F).astype(np.float32)
+    ang = 1.5 * t  # 1.5 rad over the clip
+    rng = np.random.default_rng(0)
+    local = np.concatenate([rng.uniform(-0.4, 0.4, (200, 2)), np.zeros((200, 1))], 1)
+    c, s = np.cos(ang), np.sin(ang)
+    rotz = np.stack([np.stack([c, -s, 0 * c], -1), np.stack([s, c, 0 * c], -1),
+                     np.stack([0 * c, 0 * c, 1 + 0 * c], -1)], 1)  # [F, 3, 3]
+    pts = np.einsum("fij,mj->mfi", rotz, local).astype(np.float32)  # [M, F, 3]
+    dyn = np.ones(len(pts), bool)
+    centres = np.zeros((1, 3), np.float32)
+    nodes = _nodes(centres, np.zeros((1, F, 3)), t)
+    nodes.radii[:] = 5.0
+    still = trajectory_error(nodes, pts, t, dyn)
+    q = quat_from_axis_angle(torch.tensor([0.0, 0.0, 1.0]).expand(F, 3), torch.as_tensor(ang)).numpy()[None]
+    from engine.geometry.hermite import catmull_rom_tangents
+
+    nodes.rot_keys[:] = q
+    nodes.rot_tangents[:] = catmull_rom_tangents(torch.as_tensor(t), torch.as_tensor(q)).numpy()
+    turned = trajectory_error(nodes, pts, t, dyn)
+    assert still["traj_ratio_dyn"] == pytest.approx(1.0, abs=1e-5)
+    assert turned["traj_ratio_dyn"] < 0.02, turned
