@@ -113,6 +113,36 @@ def without_groups(opt_state: dict, names: tuple[str, ...]) -> dict:
             "param_groups": [g for g in groups if g.get("name") not in names]}
 
 
+def model_from_state(sd: dict, cfg, extent: float, device):
+    """The :class:`~engine.train.model.DynamicScene` a checkpoint's model ``state_dict``
+    describes: built with its shapes (``means [G, 3]``, ``node_centers [N, 3]``, ``key_times
+    [K]``, ...), then loaded with its exact values. Fills in (in ``sd``) the tensors that
+    checkpoints from before the static-motion score and the static / dynamic split lack.
+    """
+    from .model import DynamicScene
+
+    dev = device
+    if "node_fg" not in sd:  # a checkpoint from before the static-motion score
+        sd["node_fg"] = torch.zeros_like(sd["node_p_dyn"])
+    # a checkpoint from before the static / dynamic split: one class
+    sd.setdefault("node_dyn", torch.ones(sd["node_p_dyn"].shape, dtype=torch.bool))
+    sd.setdefault("gauss_dyn", torch.ones(sd["means"].shape[0], dtype=torch.bool))
+    g = sd["means"].shape[0]
+    # Rebuild the model with the checkpoint's shapes, then load exact values.
+    nodes_keys = sd.get("pos_keys")
+    model = DynamicScene(sd["means"].to(dev), torch.zeros(g, 3, device=dev), torch.ones(g, 3, device=dev),
+                         torch.full((g,), 0.5, device=dev), sd["node_centers"].to(dev),
+                         torch.exp(sd["node_log_radii"]).to(dev), sd["key_times"].to(dev),
+                         (nodes_keys if nodes_keys is not None else
+                          sd["node_centers"][:, None].expand(-1, len(sd["key_times"]), 3)).to(dev),
+                         sd.get("rot_keys", None).to(dev) if sd.get("rot_keys") is not None else None,
+                         sh_degree=cfg.sh_degree, motion=cfg.motion, bind_k=cfg.bind_k,
+                         graph_idx=sd["graph_idx"].to(dev), node_p_dyn=sd["node_p_dyn"].to(dev),
+                         extent=extent)
+    model.load_state_dict({k: v.to(dev) for k, v in sd.items()})
+    return model
+
+
 def discard(path: str | os.PathLike) -> None:
     """Remove a finished run's checkpoint (and its folder when that is left empty)."""
     path = Path(path)

@@ -8,8 +8,8 @@ microseconds); the gradient is computed in the same pass (a scalar loss, so the 
 only scales it by the incoming gradient). Serial loops and float64 sums: the results do
 not depend on the thread count. The torch versions stay the references (and the CUDA
 path): :func:`engine.train.losses.arap_loss`, :func:`engine.train.losses.spline_smoothness`
-and ``Trainer._static_motion``; ``tests/engine/test_fused_reg.py`` checks values and
-gradients against them.
+and ``Objective.static_motion`` (``engine/train/objective.py``);
+``tests/engine/test_fused_reg.py`` checks values and gradients against them.
 
 arap(p0, q0, p1, q1, graph_idx)
     ``mean_ij |(p1_j − p1_i) − R_i (p0_j − p0_i)|²`` with ``R_i = R(q̂1_i) R(q̂0_i)ᵀ`` and

@@ -111,6 +111,7 @@ def test_fused_key_terms_only_the_used_outputs_reach_the_gradient():
 def test_trainer_terms_are_the_same_fused_or_not(tmp_path, monkeypatch, static_init):
     """One training step's loss terms and node-key gradients with the fused node terms
     and with the torch ones (ARAP, static, velocity, acceleration all live)."""
+    from engine.train import objective as O
     from engine.train import trainer as T
     from engine.train.config import preset_config
 
@@ -121,7 +122,7 @@ def test_trainer_terms_are_the_same_fused_or_not(tmp_path, monkeypatch, static_i
                         checkpoint_every=0, warmup_static_steps=0, loss={"static": 1.0, "static_init": static_init})
     res = {}
     for fused in (True, False):
-        monkeypatch.setattr(T, "FUSED_REG", fused)
+        monkeypatch.setattr(O, "FUSED_REG", fused)
         tr = T.Trainer(data, make_nodes(truth), cfg, tmp_path / str(fused))
         with torch.no_grad():
             tr.model.pos_keys.add_(0.02 * torch.randn(tr.model.pos_keys.shape, generator=torch.Generator().manual_seed(0)))
