@@ -7,7 +7,8 @@ trajectories (``gt/trajectories.npz``) at that frame, by the same RBF-blended no
 protocol as :func:`engine.bench.nodes.evaluate_gt` (K=4 nearest nodes at reference frames
 first / middle / last; each node's rotation turns the point's offset from it). ``traj_ratio_dyn = traj_err_dyn / zero_motion_dyn``: 1 for nodes
 that do not move, 0 for nodes that follow the ground truth; < 0.5 is "2x closer than zero
-motion".
+motion". :func:`rotation_error` scores how the nodes on moving objects turn against the
+objects' own rigid rotations.
 """
 
 from __future__ import annotations
@@ -58,6 +59,68 @@ def trajectory_error(nodes, points: np.ndarray, times: np.ndarray, dynamic: np.n
             "traj_err_dyn_abs": e, "zero_motion_dyn_abs": z}
 
 
+def rotation_error(nodes, points: np.ndarray, times: np.ndarray, object_id: np.ndarray, dynamic: np.ndarray,
+                   max_dist: float | None = None) -> dict:
+    """How well the nodes on moving objects turn with them.
+
+    Each node is matched, at the middle evaluated frame ``m``, to its nearest ground-truth
+    point; nodes whose match is a moving point within ``max_dist`` (default: 2 % of the scene
+    extent) are scored. The object's rotation from ``m`` to every frame ``f`` is the rigid
+    (Kabsch) fit of its points; the node's is ``q(t_f) ⊗ q(t_m)⁻¹`` of its rotation spline.
+    The error is the angle between the two.
+
+    Parameters
+    ----------
+    nodes : ``bundle.NodeArrays`` (key_times, pos_keys/pos_tangents, rot_keys/rot_tangents).
+    points : (M, F, 3) GT; times : (F,) engine times; object_id : (M,) int; dynamic : (M,) bool.
+
+    Returns
+    -------
+    dict: ``rot_err_dyn_deg`` (median over scored nodes and frames), ``rot_err_dyn_p90_deg``,
+    ``rot_gt_dyn_deg`` (median GT turn: the error of never turning), ``rot_nodes`` (nodes
+    scored); the angles are None when no node is scored.
+    """
+    from ..geometry.hermite import hermite_eval, hermite_eval_quat
+    from ..geometry.quaternion import quat_conj, quat_from_matrix, quat_mul, quat_normalize
+    from ..geometry.rigid import weighted_kabsch
+
+    as_t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
+    pts, t = as_t(points), as_t(times)
+    f = pts.shape[1]
+    m = f // 2
+    kt = as_t(nodes.key_times)
+    pos = hermite_eval(kt, as_t(nodes.pos_keys), as_t(nodes.pos_tangents), t)  # [N, F, 3]
+    rot = quat_normalize(hermite_eval_quat(kt, as_t(nodes.rot_keys), as_t(nodes.rot_tangents), t))  # [N, F, 4]
+    flat = pts.reshape(-1, 3)
+    ext = float((flat.max(0).values - flat.min(0).values).norm())
+    max_dist = 0.02 * ext if max_dist is None else max_dist
+    d = torch.cdist(pos[:, m], pts[:, m])  # [N, M]
+    dist, near = d.min(1)
+    dyn = torch.as_tensor(np.asarray(dynamic, bool))
+    obj = torch.as_tensor(np.asarray(object_id))
+    scored = (dist <= max_dist) & dyn[near]
+    empty = {"rot_err_dyn_deg": None, "rot_err_dyn_p90_deg": None, "rot_gt_dyn_deg": None, "rot_nodes": 0}
+    if not bool(scored.any()):
+        return empty
+    errs, gts = [], []
+    ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    angle = lambda a, b: 2 * torch.acos((a * b).sum(-1).abs().clamp(max=1.0))  # noqa: E731
+    for o in torch.unique(obj[near[scored]]).tolist():  # loop over objects (a handful)
+        sel = torch.nonzero(scored & (obj[near] == o)).squeeze(1)
+        op = pts[obj == o]  # [Mo, F, 3]
+        src = op[:, m].unsqueeze(0).expand(f, -1, -1)
+        R, _, ok = weighted_kabsch(src, op.permute(1, 0, 2), torch.ones(f, op.shape[0], dtype=torch.float64))
+        q_gt = quat_from_matrix(R)  # [F, 4] turn of the object since frame m
+        q_node = quat_mul(rot[sel], quat_conj(rot[sel, m:m + 1]))  # [n, F, 4]
+        e = angle(q_node, q_gt.unsqueeze(0).expand_as(q_node))[:, ok]
+        errs.append(e.reshape(-1))
+        gts.append(angle(q_gt[ok], ident.expand(int(ok.sum()), 4)).repeat(len(sel)))
+    e, g = torch.cat(errs), torch.cat(gts)
+    deg = lambda x: float(torch.rad2deg(x))  # noqa: E731
+    return {"rot_err_dyn_deg": deg(e.median()), "rot_err_dyn_p90_deg": deg(torch.quantile(e, 0.9)),
+            "rot_gt_dyn_deg": deg(g.median()), "rot_nodes": int(scored.sum())}
+
+
 def bundle_train_gt(bundle, scene_dir) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(points (M, F, 3), times (F,), dynamic (M,))``: the GT at a bundle's training cameras.
 
@@ -80,10 +143,15 @@ def bundle_train_gt(bundle, scene_dir) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 def trained_trajectory_error(bundle_dir, scene_dir) -> dict:
-    """:func:`trajectory_error` of the bundle's ``nodes.npz`` at its training cameras."""
+    """:func:`trajectory_error` and :func:`rotation_error` of the bundle's ``nodes.npz`` at
+    its training cameras."""
     from ..bundle import load_bundle
 
     bundle = load_bundle(bundle_dir)
     if bundle.nodes is None:
         raise ValueError(f"{bundle_dir} has no nodes.npz")
-    return trajectory_error(bundle.nodes, *bundle_train_gt(bundle, scene_dir))
+    points, times, dynamic = bundle_train_gt(bundle, scene_dir)
+    with np.load(Path(scene_dir) / "gt" / "trajectories.npz", allow_pickle=False) as traj:
+        object_id = traj["object_id"]
+    return {**trajectory_error(bundle.nodes, points, times, dynamic),
+            **rotation_error(bundle.nodes, points, times, object_id, dynamic)}

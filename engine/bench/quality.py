@@ -152,11 +152,13 @@ def scene_baselines(bundle_dir, clip) -> dict:
 def node_motion(bundle_dir, clip) -> dict:
     """Node-trajectory error after training (generated scenes with ``gt/trajectories.npz``)."""
     if not (Path(clip) / "gt" / "trajectories.npz").is_file():
-        return {"traj_err_dyn": None, "zero_motion_dyn": None, "traj_ratio_dyn": None}
+        return {"traj_err_dyn": None, "zero_motion_dyn": None, "traj_ratio_dyn": None, "rot_err_dyn_deg": None,
+                "rot_gt_dyn_deg": None}
     from .node_motion import trained_trajectory_error
 
     t = trained_trajectory_error(bundle_dir, clip)
-    return {k: t[k] for k in ("traj_err_dyn", "zero_motion_dyn", "traj_ratio_dyn")}
+    return {k: t[k] for k in ("traj_err_dyn", "zero_motion_dyn", "traj_ratio_dyn", "rot_err_dyn_deg",
+                              "rot_gt_dyn_deg")}
 
 
 def run_one(clip, name: str, init: str, motion: str, work: Path, steps=None, threads=None, device=None,

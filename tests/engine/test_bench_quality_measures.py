@@ -204,3 +204,40 @@ def test_trajectory_error_counts_the_nodes_turn():
     turned = trajectory_error(nodes, pts, t, dyn)
     assert still["traj_ratio_dyn"] == pytest.approx(1.0, abs=1e-5)
     assert turned["traj_ratio_dyn"] < 0.02, turned
+
+
+def test_rotation_error_scores_turning_nodes_against_the_objects_turn():
+    """Nodes on a spinning disc: with the disc's rotation their error is ~0, without it the
+    error is the disc's own turn; nodes off every moving point are not scored."""
+    from engine.bench.node_motion import rotation_error
+    from engine.geometry.hermite import catmull_rom_tangents
+    from engine.geometry.quaternion import quat_from_axis_angle
+
+    import torch
+
+    F = 13
+    t = np.linspace(0, 1, F).astype(np.float32)
+    ang = 1.2 * t
+    rng = np.random.default_rng(0)
+    local = np.concatenate([rng.uniform(-0.4, 0.4, (300, 2)), np.zeros((300, 1))], 1)
+    c, s = np.cos(ang), np.sin(ang)
+    rotz = np.stack([np.stack([c, -s, 0 * c], -1), np.stack([s, c, 0 * c], -1),
+                     np.stack([0 * c, 0 * c, 1 + 0 * c], -1)], 1)
+    disc = np.einsum("fij,mj->mfi", rotz, local)
+    wall = np.repeat(rng.uniform(-3, 3, (300, 1, 3)) + [0, 0, 4], F, 1)  # static points far behind
+    pts = np.concatenate([disc, wall]).astype(np.float32)
+    dynamic = np.r_[np.ones(300, bool), np.zeros(300, bool)]
+    object_id = np.r_[np.ones(300, int), np.zeros(300, int)]
+    on_disc = disc[:5]  # five nodes riding on disc points
+    far = np.repeat(np.array([[[10.0, 10.0, 10.0]]]), F, 1)  # one node near nothing
+    nodes = _nodes(np.concatenate([on_disc[:, F // 2], far[:, 0]]).astype(np.float32),
+                   np.concatenate([on_disc, far]), t)
+    still = rotation_error(nodes, pts, t, object_id, dynamic)
+    q = quat_from_axis_angle(torch.tensor([0.0, 0.0, 1.0]).expand(F, 3), torch.as_tensor(ang)).numpy()
+    nodes.rot_keys[:] = q[None]
+    nodes.rot_tangents[:] = catmull_rom_tangents(torch.as_tensor(t), torch.as_tensor(q[None]).expand(6, F, 4)).numpy()
+    turned = rotation_error(nodes, pts, t, object_id, dynamic)
+    assert still["rot_nodes"] == turned["rot_nodes"] == 5
+    assert turned["rot_err_dyn_deg"] < 0.05
+    assert still["rot_err_dyn_deg"] == pytest.approx(still["rot_gt_dyn_deg"], abs=1e-6)
+    assert still["rot_gt_dyn_deg"] == pytest.approx(np.degrees(0.3), abs=0.5)  # median |turn| from mid-clip: 1.2 rad x 1/4
