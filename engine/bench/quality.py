@@ -22,7 +22,8 @@ when the scene has dynamic masks), the still-plate baseline of the training fram
 (``plate_psnr``, ``plate_masked_psnr``: the median training frame scored against every
 training frame, :mod:`engine.bench.still_plate`) and, on generated scenes, the node
 trajectories after training vs ground truth (``traj_err_dyn``, ``zero_motion_dyn``,
-``traj_ratio_dyn`` = their ratio, :mod:`engine.bench.node_motion`). ``--kind large``
+``traj_ratio_dyn`` = their ratio; ``rot_err_dyn_deg`` against ``rot_gt_dyn_deg``, how the nodes on
+moving objects turn against the objects' own turn, :mod:`engine.bench.node_motion`). ``--kind large``
 generates the large-motion family (60 frames).
 
 ``--train-seeds 0,1,2`` trains every configuration once per training seed and appends a
