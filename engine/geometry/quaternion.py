@@ -80,6 +80,13 @@ def quat_from_matrix(R: torch.Tensor) -> torch.Tensor:
     return torch.where(q[..., :1] < 0, -q, q)
 
 
+def quat_identity(*shape: int, dtype=None, device=None) -> torch.Tensor:
+    """Identity quaternions ``[*shape, 4]`` (``(1, 0, 0, 0)``)."""
+    q = torch.zeros(*shape, 4, dtype=dtype, device=device)
+    q[..., 0] = 1
+    return q
+
+
 def quat_from_axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     """Quaternions ``[..., 4]`` rotating by ``angle [...]`` (radians) about ``axis [..., 3]``."""
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..geometry.hermite import catmull_rom_tangents
+from ..geometry.quaternion import quat_identity
 from .baselines import farthest_point_sampling, tracklet_clusters, uniform_voxel_centres
 from .candidates import Candidates, build_candidates, choose_keyframes
 from .graph import node_graph, node_radii
@@ -122,8 +123,7 @@ def assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config: NodeInit
     graph_idx, _ = node_graph(centers, config.graph_k)
     if config.rotations not in ("tracks", "identity"):
         raise ValueError(f"unknown rotation init {config.rotations!r}; expected 'tracks' or 'identity'")
-    rot_keys = torch.zeros(n, key_times.shape[0], 4)
-    rot_keys[..., 0] = 1.0
+    rot_keys = quat_identity(n, key_times.shape[0])
     rot_tan = torch.zeros_like(rot_keys)
     if config.trajectory == "spline":
         frame = _snap_frame(src_time, times)

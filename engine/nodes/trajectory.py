@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from ..geometry.binding import knn_nodes
 from ..geometry.camera import unproject
 from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_fit
-from ..geometry.quaternion import quat_from_matrix, quat_normalize
+from ..geometry.quaternion import quat_from_matrix, quat_identity, quat_normalize
 from ..geometry.rigid import weighted_kabsch
 
 
@@ -268,7 +268,8 @@ def _finish(centers, disp_keys, support, key_times, graph_idx, fallback, rounds)
 
 def _fill_along(x: torch.Tensor, ok: torch.Tensor, dim: int) -> torch.Tensor:
     """Fill entries of ``x`` where ``ok`` is False with the nearest earlier ``ok`` entry along
-    ``dim`` (later one before the first); all-False slices are left as they are.
+    ``dim`` (later one before the first); all-False slices take their last entry (callers
+    replace those).
     ``x [..., L, C]`` with ``dim`` the L axis (negative), ``ok [..., L]``."""
     n = ok.shape[dim]
     ar = torch.arange(n, device=ok.device).expand_as(ok)
@@ -326,8 +327,7 @@ def fit_node_rotations(frame_rot: torch.Tensor, frame_ok: torch.Tensor, times: t
     """
     n, f = frame_ok.shape
     k_n = key_times.shape[0]
-    ident = torch.zeros(n, k_n, 4)
-    ident[..., 0] = 1.0
+    ident = quat_identity(n, k_n)
     if n == 0 or f == 0:
         return ident, torch.zeros(n, dtype=torch.bool)
     order = torch.argsort(times.float(), stable=True)  # work in time order
@@ -344,4 +344,4 @@ def fit_node_rotations(frame_rot: torch.Tensor, frame_ok: torch.Tensor, times: t
     keys = torch.einsum("nkf,nfc->nkc", wk, q)
     keys = _fill_along(quat_normalize(keys), wk.sum(-1) > 0, -1)
     rotated = ok.any(1)
-    return torch.where(rotated[:, None, None], quat_normalize(keys), ident), rotated
+    return torch.where(rotated[:, None, None], keys, ident), rotated

@@ -21,7 +21,7 @@ from ..errors import InputError
 from ..geometry.binding import bind_gaussians
 from ..geometry.camera import project, unproject
 from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
-from ..geometry.quaternion import quat_conj
+from ..geometry.quaternion import quat_conj, quat_identity
 from .config import TrainConfig
 from .data import TrainingData
 from .model import DynamicScene
@@ -185,7 +185,8 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         # static nodes rest where they were seen (their keys never train)
         rest = centers.unsqueeze(1).expand_as(pos_keys)
         pos_keys = torch.where(node_dyn[:, None, None], pos_keys, rest)
-        rot_keys = torch.where(node_dyn[:, None, None], rot_keys, _identity_quats(rot_keys))
+        rot_keys = torch.where(node_dyn[:, None, None], rot_keys,
+                               quat_identity(*rot_keys.shape[:-1], dtype=rot_keys.dtype, device=rot_keys.device))
     if cfg.motion != "mlp" and cfg.canonical_time >= 0:
         pos_tan = as_t(nodes.pos_tangents) if node_dyn is None else None
         centers, radii, graph = common_canonical_nodes(data, key_times, pos_keys, pos_tan, cfg.canonical_time, graph,
@@ -271,12 +272,6 @@ def _canonical_time(data: TrainingData, t_rel: float, dtype) -> torch.Tensor:
     """The training frame time ``t_rel`` of the way through the training frames, ``[1]``."""
     times = torch.sort(data.times[data.train_idx].to(dtype)).values
     return times[int(round(t_rel * (len(times) - 1)))].reshape(1)
-
-
-def _identity_quats(like: torch.Tensor) -> torch.Tensor:
-    ident = torch.zeros_like(like)
-    ident[..., 0] = 1
-    return ident
 
 
 def canonical_rotations(data: TrainingData, key_times: torch.Tensor, rot_keys: torch.Tensor,

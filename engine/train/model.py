@@ -29,7 +29,7 @@ import torch.nn as nn
 from ..geometry.binding import bind_gaussians
 from ..geometry.dualquat import dq_apply_points, dq_apply_rotations, dq_blend, node_transforms_dq
 from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_eval_quat
-from ..geometry.quaternion import quat_normalize
+from ..geometry.quaternion import quat_identity, quat_normalize
 from .fused import fused_available, fused_deform
 from .split import bind_within_class, knn_rbf
 
@@ -177,8 +177,7 @@ class DynamicScene(nn.Module):
             self.mlp = None
             self.pos_keys = nn.Parameter(pos_keys.clone())
             if rot_keys is None:
-                rot_keys = torch.zeros(n, k, 4, device=dev, dtype=dt)
-                rot_keys[..., 0] = 1
+                rot_keys = quat_identity(n, k, device=dev, dtype=dt)
             self.rot_keys = nn.Parameter(rot_keys.clone())
         self.register_buffer("node_dyn", torch.ones(n, dtype=torch.bool, device=dev))
         self.register_buffer("gauss_dyn", torch.ones(g, dtype=torch.bool, device=dev))

@@ -16,7 +16,7 @@ from typing import Callable
 
 import torch
 
-from ..geometry.quaternion import quat_apply, quat_normalize, quat_to_matrix
+from ..geometry.quaternion import quat_apply, quat_identity, quat_normalize, quat_to_matrix
 from .config import TrainConfig
 from .data import TrainingData
 from .init_model import trajectory_fg_score
@@ -232,8 +232,7 @@ class NodeDensifyStrategy:
                     rk = m.rot_keys[par].detach()
                     shift = (new_c - m.node_centers[par]).unsqueeze(1).expand(-1, rk.shape[1], -1)
                     keys = m.pos_keys[par].detach() + quat_apply(quat_normalize(rk), shift)
-                    ident = torch.zeros_like(rk)
-                    ident[..., 0] = 1.0
+                    ident = quat_identity(*rk.shape[:-1], dtype=rk.dtype, device=rk.device)
                     fol = follow[:, None, None]
                     extra["pos_keys"] = torch.where(fol, keys, new_c.unsqueeze(1).expand_as(keys))
                     extra["rot_keys"] = torch.where(fol, rk, ident)
