@@ -42,6 +42,9 @@ class LossWeights:
     track: float = 0.05       # projected deformed track points vs 2D tracks (Huber, in % of the image width)
     rgb_dynamic: float = 2.0  # extra L1 weight on pixels the dynamic prior calls moving (1 + this there):
                               # moving objects cover a few % of the image and would get that share of the loss
+    rgb_coarse: float = 1.0   # L1 of the 4x and 8x box-downsampled render vs frame (losses.coarse_l1), weighted
+                              # like rgb: its cost grows with how far a moving object is rendered off its
+                              # place, so nodes that start off it are pulled back (docs/benchmarks.md)
     arap: float = 1.0         # as-rigid-as-possible on the node graph
     velocity: float = 1e-3    # mild spline velocity regulariser
     acceleration: float = 1e-2  # mild spline acceleration regulariser

@@ -1,8 +1,8 @@
 """The training objective: the loss terms of one step and the supervision they need.
 
-:class:`Objective` assembles the weighted loss of one rendered frame (photometric, depth,
-mask, track, ARAP, static motion, spline smoothness) from the model, the training data
-and ``cfg.loss``. It owns the state those terms carry across steps: the lifted 2D tracks
+:class:`Objective` assembles the weighted loss of one rendered frame (photometric at full and
+at coarse resolution, depth, mask, track, ARAP, static motion, spline smoothness) from the
+model, the training data and ``cfg.loss``. It owns the state those terms carry across steps: the lifted 2D tracks
 (:meth:`Objective.prepare_tracks`, rebound with the Gaussians by
 :meth:`Objective.rebind_tracks`) and the static-motion reference ``static_ref``.
 """
@@ -148,6 +148,8 @@ class Objective:
             # share of the photometric gradient that is not drowned by the background
             weight = (1.0 + w.rgb_dynamic * (d.fg[f] >= self.cfg.dynamic_threshold).to(target.dtype)).unsqueeze(-1)
         terms = {"rgb": L.photometric(out.rgb, target, w.ssim, weight) * w.rgb}
+        if w.rgb_coarse > 0:
+            terms["rgb_coarse"] = w.rgb_coarse * L.coarse_l1(out.rgb, target, weight)
         if w.depth > 0 and d.depth is not None:
             prior = d.depth[f]
             valid = (prior > 0) & (out.alpha[..., 0].detach() > 0.5)

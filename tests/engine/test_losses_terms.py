@@ -1,4 +1,4 @@
-"""Direct tests of the track and mask terms, and of the training step's gradient flow: every
+"""Direct tests of the track, mask and coarse photometric terms, and of the training step's gradient flow: every
 trainable parameter of the model gets a gradient in one step, or is not trainable (#19: the
 RBF radius was an optimised parameter that never received one)."""
 
@@ -14,6 +14,46 @@ from engine.train.config import preset_config
 from engine.train.trainer import Trainer
 
 from .synthetic_training import make_nodes, make_scene
+
+
+# ---------------------------------------------------------------------- coarse_l1
+def _textured_object(offset: int, size: int = 64, obj: int = 16) -> torch.Tensor:
+    """A square of pixel-scale orange texture on a pixel-scale grey one, ``offset`` px right of centre."""
+    g = torch.Generator().manual_seed(0)
+    img = 0.3 + 0.2 * (torch.rand(size, size, 3, generator=g) - 0.5)
+    texture = torch.tensor([0.8, 0.6, 0.2]) + 0.4 * (torch.rand(obj, obj, 3, generator=g) - 0.5)
+    y0, x0 = (size - obj) // 2, (size - obj) // 2 + offset
+    img[y0:y0 + obj, x0:x0 + obj] = texture
+    return img
+
+
+def test_coarse_l1_is_the_mean_l1_of_the_pooled_images():
+    g = torch.Generator().manual_seed(1)
+    a, b = torch.rand(20, 30, 3, generator=g), torch.rand(20, 30, 3, generator=g)
+    assert float(L.coarse_l1(a, a)) == 0.0
+    pa = lambda x, k: torch.nn.functional.avg_pool2d(x.permute(2, 0, 1)[None], k, ceil_mode=True)  # noqa: E731
+    want = sum(float((pa(a, k) - pa(b, k)).abs().mean()) for k in L.COARSE_POOLS) / len(L.COARSE_POOLS)
+    assert math.isclose(float(L.coarse_l1(a, b)), want, rel_tol=1e-5)
+    # a weight of ones is the unweighted mean; a weight on one half only sees that half
+    assert math.isclose(float(L.coarse_l1(a, b, torch.ones(20, 30, 1))), want, rel_tol=1e-5)
+    left = torch.zeros(20, 30, 1)
+    left[:, :16] = 1.0
+    b2 = b.clone()
+    b2[:, :16] = a[:, :16]
+    assert float(L.coarse_l1(a, b2, left)) == pytest.approx(0.0, abs=1e-7)
+
+
+def test_coarse_l1_keeps_telling_how_far_an_offset_textured_object_is():
+    """The mechanism the term is for: at full resolution an object offset by 1 px already pays
+    the texture-mismatch floor, so the cost says little about how far it is (6 px costs ~2x
+    1 px); downsampled, the texture averages out and the cost grows with the offset (~5x)."""
+    target = _textured_object(0)
+    full = [float(L.l1(_textured_object(d), target)) for d in range(7)]
+    coarse = [float(L.coarse_l1(_textured_object(d), target)) for d in range(7)]
+    assert full[0] == coarse[0] == 0.0
+    assert all(b > a for a, b in zip(coarse[:-1], coarse[1:]))  # grows with every pixel of offset
+    assert coarse[6] / coarse[1] > 4.0
+    assert full[6] / full[1] < 2.5
 
 
 # ---------------------------------------------------------------------- track_loss
