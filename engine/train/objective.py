@@ -2,8 +2,8 @@
 
 :class:`Objective` assembles the weighted loss of one rendered frame (photometric at full and
 at coarse resolution, depth, mask, track, ARAP, static motion, spline smoothness) from the
-model, the training data and ``cfg.loss``. It owns the state those terms carry across steps: the lifted 2D tracks
-(:meth:`Objective.prepare_tracks`, rebound with the Gaussians by
+model, the training data and ``cfg.loss``. It owns the state those terms carry across steps:
+the lifted 2D tracks (:meth:`Objective.prepare_tracks`, rebound with the Gaussians by
 :meth:`Objective.rebind_tracks`) and the static-motion reference ``static_ref``.
 """
 

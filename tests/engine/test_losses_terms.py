@@ -1,6 +1,6 @@
-"""Direct tests of the track, mask and coarse photometric terms, and of the training step's gradient flow: every
-trainable parameter of the model gets a gradient in one step, or is not trainable (#19: the
-RBF radius was an optimised parameter that never received one)."""
+"""Direct tests of the track, mask and coarse photometric terms, and of the training step's
+gradient flow: every trainable parameter of the model gets a gradient in one step, or is not
+trainable (#19: the RBF radius was an optimised parameter that never received one)."""
 
 from __future__ import annotations
 
