@@ -81,7 +81,7 @@ def rotation_error(nodes, points: np.ndarray, times: np.ndarray, object_id: np.n
     scored); the angles are None when no node is scored.
     """
     from ..geometry.hermite import hermite_eval, hermite_eval_quat
-    from ..geometry.quaternion import quat_conj, quat_from_matrix, quat_mul, quat_normalize
+    from ..geometry.quaternion import quat_conj, quat_from_matrix, quat_identity, quat_mul, quat_normalize
     from ..geometry.rigid import weighted_kabsch
 
     as_t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
@@ -103,7 +103,7 @@ def rotation_error(nodes, points: np.ndarray, times: np.ndarray, object_id: np.n
     if not bool(scored.any()):
         return empty
     errs, gts = [], []
-    ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    ident = quat_identity(dtype=torch.float64)
     angle = lambda a, b: 2 * torch.acos((a * b).sum(-1).abs().clamp(max=1.0))  # noqa: E731
     for o in torch.unique(obj[near[scored]]).tolist():  # loop over objects (a handful)
         sel = torch.nonzero(scored & (obj[near] == o)).squeeze(1)

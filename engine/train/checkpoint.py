@@ -122,6 +122,7 @@ def model_from_state(sd: dict, cfg, extent: float, device):
     from .model import DynamicScene
 
     dev = device
+    rot_keys = sd.get("rot_keys")
     if "node_fg" not in sd:  # a checkpoint from before the static-motion score
         sd["node_fg"] = torch.zeros_like(sd["node_p_dyn"])
     # a checkpoint from before the static / dynamic split: one class
@@ -135,7 +136,7 @@ def model_from_state(sd: dict, cfg, extent: float, device):
                          torch.exp(sd["node_log_radii"]).to(dev), sd["key_times"].to(dev),
                          (nodes_keys if nodes_keys is not None else
                           sd["node_centers"][:, None].expand(-1, len(sd["key_times"]), 3)).to(dev),
-                         sd.get("rot_keys", None).to(dev) if sd.get("rot_keys") is not None else None,
+                         None if rot_keys is None else rot_keys.to(dev),
                          sh_degree=cfg.sh_degree, motion=cfg.motion, bind_k=cfg.bind_k,
                          graph_idx=sd["graph_idx"].to(dev), node_p_dyn=sd["node_p_dyn"].to(dev),
                          extent=extent)

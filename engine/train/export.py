@@ -38,8 +38,9 @@ def bundle_cameras(data: TrainingData) -> tuple[torch.Tensor, list[dict]]:
     size, time, train / val split and index in the clip."""
     d = data
     frames = d.frame_numbers if d.frame_numbers is not None else torch.arange(d.num_frames)
+    val = set(d.val_idx.tolist())
     cams = [{"frame": int(frames[i]), "w2c": d.w2c[i].cpu().numpy(), "K": d.K[i].cpu().numpy(),
              "width": d.width, "height": d.height, "time": float(d.times[i]),
-             "split": "val" if i in set(d.val_idx.tolist()) else "train",
+             "split": "val" if i in val else "train",
              "clip_index": int(d.clip_index[i]) if d.clip_index is not None else i} for i in range(d.num_frames)]
     return frames, cams

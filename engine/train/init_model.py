@@ -21,7 +21,7 @@ from ..errors import InputError
 from ..geometry.binding import bind_gaussians
 from ..geometry.camera import project, unproject
 from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
-from ..geometry.quaternion import quat_conj, quat_identity
+from ..geometry.quaternion import quat_conj, quat_identity, quat_mul, quat_normalize
 from .config import TrainConfig
 from .data import TrainingData
 from .model import DynamicScene
@@ -284,7 +284,6 @@ def canonical_rotations(data: TrainingData, key_times: torch.Tensor, rot_keys: t
     ``key_times [K]``, ``rot_keys [N, K, 4]`` -> ``[N, K, 4]``.
     """
     from ..geometry.hermite import catmull_rom_tangents, hermite_eval_quat
-    from ..geometry.quaternion import quat_conj, quat_mul, quat_normalize
 
     t_c = _canonical_time(data, t_rel, rot_keys.dtype)
     q_c = hermite_eval_quat(key_times, rot_keys, catmull_rom_tangents(key_times, rot_keys), t_c)  # [N, 1, 4]
