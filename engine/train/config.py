@@ -45,6 +45,9 @@ class LossWeights:
     rgb_coarse: float = 1.0   # L1 of the 4x and 8x box-downsampled render vs frame (losses.coarse_l1), weighted
                               # like rgb: its cost grows with how far a moving object is rendered off its
                               # place, so nodes that start off it are pulled back (docs/benchmarks.md)
+    on_mask: float = 0.3      # dynamic Gaussians projecting off each frame's moving region (losses.on_mask_loss):
+                              # pulls back the ones left behind by node trajectories that rest where their
+                              # tracks ended (docs/benchmarks.md "Gaussians left behind")
     arap: float = 1.0         # as-rigid-as-possible on the node graph
     velocity: float = 1e-3    # mild spline velocity regulariser
     acceleration: float = 1e-2  # mild spline acceleration regulariser

@@ -231,6 +231,53 @@ def track_loss(proj_uv: torch.Tensor, target_uv: torch.Tensor, visible: torch.Te
     return F.huber_loss(d, torch.zeros_like(d), delta=0.05, reduction="mean")
 
 
+def mask_distance(fg: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Distance in px from every pixel to the nearest moving pixel, per frame.
+
+    Parameters
+    ----------
+    fg : (F, H, W) dynamic prior in [0, 1]; ``>= threshold`` is moving.
+
+    Returns
+    -------
+    (F, H, W) float32 on ``fg``'s device: 0 on moving pixels; frames without a moving pixel
+    are all 0 (no information where the moving things are).
+    """
+    import cv2
+    import numpy as np
+
+    moving = (fg >= threshold).cpu().numpy()
+    out = np.zeros(moving.shape, np.float32)
+    for f in np.flatnonzero(moving.reshape(len(moving), -1).any(1)):  # one OpenCV call per frame
+        out[f] = cv2.distanceTransform((~moving[f]).astype(np.uint8), cv2.DIST_L2, 5)
+    return torch.from_numpy(out).to(fg.device)
+
+
+def on_mask_loss(uv: torch.Tensor, dist: torch.Tensor, scale: float) -> torch.Tensor:
+    """How far projected points lie outside the moving region: mean Huber of the distance map.
+
+    Parameters
+    ----------
+    uv : (P, 2) projected positions in pixels (continuous coordinates).
+    dist : (H, W) distance to the nearest moving pixel (:func:`mask_distance`).
+    scale : pixels per unit error (as :func:`track_loss`).
+
+    Points outside the image count 0 (objects leave the frame) but stay in the mean's
+    denominator. The distance is sampled bilinearly between pixel centres (``dist[r, c]`` sits
+    at ``(c + 0.5, r + 0.5)``), so its gradient points towards the region from as far away as
+    the point is.
+    """
+    h, w = dist.shape
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    if not bool(inside.any()):
+        return uv.sum() * 0.0
+    p = uv[inside] - 0.5  # pixel-centre coordinates
+    grid = torch.stack([p[:, 0] / max(w - 1, 1) * 2 - 1, p[:, 1] / max(h - 1, 1) * 2 - 1], -1).view(1, -1, 1, 2)
+    d = F.grid_sample(dist.view(1, 1, h, w).to(uv.dtype), grid, align_corners=True,
+                      padding_mode="border").view(-1) / scale
+    return F.huber_loss(d, torch.zeros_like(d), delta=0.05, reduction="sum") / uv.shape[0]
+
+
 def arap_loss(pos_t0: torch.Tensor, pos_t1: torch.Tensor, rot_t1: torch.Tensor, graph_idx: torch.Tensor,
               graph_w: torch.Tensor | None = None) -> torch.Tensor:
     """As-rigid-as-possible on the node graph between two times.

@@ -120,6 +120,45 @@ def test_mask_loss_pulls_the_dynamic_render_toward_the_prior():
     assert a.grad is None
 
 
+# ---------------------------------------------------------------------- on_mask_loss
+def test_mask_distance_is_zero_on_moving_pixels_and_the_distance_elsewhere():
+    fg = torch.zeros(2, 12, 20)
+    fg[0, 5, 7] = 0.9  # one moving pixel in frame 0; frame 1 has none
+    fg[0, 9, 2] = 0.4  # below the threshold: not moving
+    dist = L.mask_distance(fg, 0.5)
+    assert dist.shape == fg.shape and dist.dtype == torch.float32
+    assert float(dist[0, 5, 7]) == 0.0
+    assert float(dist[0, 5, 10]) == pytest.approx(3.0, abs=0.05)
+    assert float(dist[0, 9, 2]) == pytest.approx(math.hypot(4, 5), rel=0.03)
+    assert torch.count_nonzero(dist[1]) == 0  # nothing moving: no pull anywhere
+
+
+def test_on_mask_loss_pulls_points_onto_the_moving_region():
+    fg = torch.zeros(1, 40, 60)
+    fg[0, 15:25, 30:40] = 1.0
+    dist = L.mask_distance(fg, 0.5)[0]
+    uv = torch.tensor([[35.0, 20.0],    # inside: free
+                       [14.5, 20.5],    # the centre of pixel (20, 14): 16 px left of the region's pixel centres
+                       [-5.0, 20.0]],   # off the image: not scored
+                      requires_grad=True)
+    loss = L.on_mask_loss(uv, dist, 60 / 100.0)
+    loss.backward()
+    g = uv.grad
+    assert torch.count_nonzero(g[0]) == 0 and torch.count_nonzero(g[2]) == 0
+    assert g[1, 0] < 0 and abs(float(g[1, 1])) < 1e-6 * abs(float(g[1, 0]))  # descent moves it right, only
+    # linear beyond the Huber knee: the far point costs delta (d - delta / 2), averaged over all 3 points
+    d = 16.0 / 0.6
+    assert float(loss.detach()) == pytest.approx(0.05 * (d - 0.025) / 3, rel=1e-3)
+    # gradient descent brings a point from 25 px away onto the region
+    p = torch.tensor([[5.0, 2.0]], requires_grad=True)
+    opt = torch.optim.SGD([p], lr=2.0)
+    for _ in range(200):
+        opt.zero_grad()
+        L.on_mask_loss(p, dist, 0.6).backward()
+        opt.step()
+    assert float(dist[int(p[0, 1]), int(p[0, 0])]) <= 1.0
+
+
 # ---------------------------------------------------------------------- gradient flow
 @pytest.fixture(scope="module")
 def scene():
@@ -144,6 +183,7 @@ def test_every_trainable_parameter_gets_a_gradient_in_a_step(tmp_path, scene, mo
     trainer.step = 4  # a mask step (every 4th), past the warm-up
     loss, metrics, _ = trainer._loss(f)
     assert {"rgb", "mask", "depth", "arap", "static"} <= set(metrics)
+    assert ("on_mask" in metrics) == split  # the dynamic Gaussians exist with the split only
     if motion != "mlp":
         assert "track" in metrics and "velocity" in metrics
     trainer.opt.zero_grad(set_to_none=True)
