@@ -23,7 +23,10 @@ when the scene has dynamic masks), the still-plate baseline of the training fram
 training frame, :mod:`engine.bench.still_plate`) and, on generated scenes, the node
 trajectories after training vs ground truth (``traj_err_dyn``, ``zero_motion_dyn``,
 ``traj_ratio_dyn`` = their ratio; ``rot_err_dyn_deg`` against ``rot_gt_dyn_deg``, how the nodes on
-moving objects turn against the objects' own turn, :mod:`engine.bench.node_motion`). ``--kind large``
+moving objects turn against the objects' own turn, :mod:`engine.bench.node_motion`) and
+``kept_dyn``, the share of the Gaussians on a moving object at the middle training frame still on
+it at the others (:mod:`engine.bench.object_coverage`: low when each stretch of time has its own
+Gaussians for the object). ``--kind large``
 generates the large-motion family (60 frames).
 
 ``--train-seeds 0,1,2`` trains every configuration once per training seed and appends a
@@ -151,15 +154,18 @@ def scene_baselines(bundle_dir, clip) -> dict:
 
 
 def node_motion(bundle_dir, clip) -> dict:
-    """Node-trajectory error after training (generated scenes with ``gt/trajectories.npz``)."""
+    """Node-trajectory error after training and the Gaussians kept on the moving objects
+    (generated scenes with ``gt/trajectories.npz`` / ``gt/objects.json``)."""
     if not (Path(clip) / "gt" / "trajectories.npz").is_file():
         return {"traj_err_dyn": None, "zero_motion_dyn": None, "traj_ratio_dyn": None, "rot_err_dyn_deg": None,
-                "rot_gt_dyn_deg": None}
+                "rot_gt_dyn_deg": None, "kept_dyn": None}
     from .node_motion import trained_trajectory_error
+    from .object_coverage import kept_on_objects
 
     t = trained_trajectory_error(bundle_dir, clip)
-    return {k: t[k] for k in ("traj_err_dyn", "zero_motion_dyn", "traj_ratio_dyn", "rot_err_dyn_deg",
-                              "rot_gt_dyn_deg")}
+    kept = kept_on_objects(bundle_dir, clip) if (Path(clip) / "gt" / "objects.json").is_file() else {}
+    return {**{k: t[k] for k in ("traj_err_dyn", "zero_motion_dyn", "traj_ratio_dyn", "rot_err_dyn_deg",
+                                 "rot_gt_dyn_deg")}, "kept_dyn": kept.get("kept_dyn")}
 
 
 def run_one(clip, name: str, init: str, motion: str, work: Path, steps=None, threads=None, device=None,
@@ -248,7 +254,7 @@ def run(args) -> list[dict]:
 
 MEAN_KEYS = ("psnr", "ssim", "psnr_init", "masked_psnr", "psnr_train", "masked_psnr_train", "masked_ssim_train",
              "masked_psnr_val", "masked_ssim_val", "plate_psnr", "plate_masked_psnr", "traj_err_dyn",
-             "zero_motion_dyn", "traj_ratio_dyn", "train_s", "its_per_s", "nodes")
+             "zero_motion_dyn", "traj_ratio_dyn", "kept_dyn", "train_s", "its_per_s", "nodes")
 
 
 def seed_means(rows: list[dict]) -> list[dict]:

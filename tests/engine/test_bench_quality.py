@@ -13,7 +13,8 @@ REPO = Path(__file__).resolve().parents[2]
 
 REQUIRED = ("scene", "init", "motion", "psnr", "ssim", "lpips", "psnr_init", "train_s", "its_per_s", "gaussians",
             "nodes", "peak_rss_mb", "psnr_train", "masked_psnr_train", "masked_ssim_train", "masked_psnr_val",
-            "masked_ssim_val", "plate_psnr", "plate_masked_psnr", "traj_err_dyn", "zero_motion_dyn", "traj_ratio_dyn")
+            "masked_ssim_val", "plate_psnr", "plate_masked_psnr", "traj_err_dyn", "zero_motion_dyn", "traj_ratio_dyn",
+            "kept_dyn")
 
 
 def test_seed_means_average_each_configuration_over_training_seeds():
@@ -51,6 +52,7 @@ def test_bench_quality_rows(tmp_path):
         # the generated scene has GT masks and trajectories: every new measure is there
         assert row["masked_psnr_val"] == row["masked_psnr"] and 3 < row["masked_psnr_train"] < 60
         assert row["traj_err_dyn"] == pytest.approx(row["traj_ratio_dyn"] * row["zero_motion_dyn"])
+        assert row["kept_dyn"] is None or 0.0 <= row["kept_dyn"] <= 1.0
     # the still plate depends on the scene only: the same for both configurations
     assert rows[0]["plate_masked_psnr"] == rows[1]["plate_masked_psnr"] is not None
     # priors computed once: both configs used the same cache folder
