@@ -5,7 +5,8 @@ at coarse resolution, depth, mask, track, dynamic Gaussians on the moving region
 static motion, spline smoothness) from the
 model, the training data and ``cfg.loss``. It owns the state those terms carry across steps:
 the lifted 2D tracks (:meth:`Objective.prepare_tracks`, rebound with the Gaussians by
-:meth:`Objective.rebind_tracks`) and the static-motion reference ``static_ref``.
+:meth:`Objective.rebind_tracks`), the static-motion reference ``static_ref`` and the moving
+regions' distance maps ``mask_dist``.
 """
 
 from __future__ import annotations
