@@ -121,22 +121,29 @@ def rotation_error(nodes, points: np.ndarray, times: np.ndarray, object_id: np.n
             "rot_gt_dyn_deg": deg(g.median()), "rot_nodes": int(scored.sum())}
 
 
-def bundle_train_gt(bundle, scene_dir) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(points (M, F, 3), times (F,), dynamic (M,))``: the GT at a bundle's training cameras.
-
-    A camera's clip frame (``clip_index``, else frame number − start) names a ``left_NNNNNN``
-    frame of the generated scene, whose number indexes ``gt/trajectories.npz``.
-    """
+def bundle_train_frames(bundle, scene_dir) -> tuple[list[dict], list[str]]:
+    """``(cameras, frame ids)``: a bundle's training cameras and the generated scene's frame
+    (``left_NNNNNN``) each one shows -- the camera's clip frame is ``clip_index``, else its frame
+    number − the clip's start."""
     from ..io import load_clip
 
     clip = load_clip(scene_dir)
     start = int(clip.meta.get("frame_start", 1)) if isinstance(clip.meta, dict) else 1
     cams = [c for c in bundle.scene["cameras"] if c.get("split", "train") == "train"]
-    idx, times = [], []
-    for c in cams:
-        i = int(c["clip_index"]) if "clip_index" in c else int(c["frame"]) - start
-        idx.append(int(str(clip.frame_ids[i]).rsplit("_", 1)[1]))
-        times.append(float(c["time"]))
+    ids = [str(clip.frame_ids[int(c["clip_index"]) if "clip_index" in c else int(c["frame"]) - start])
+           for c in cams]
+    return cams, ids
+
+
+def bundle_train_gt(bundle, scene_dir) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(points (M, F, 3), times (F,), dynamic (M,))``: the GT at a bundle's training cameras.
+
+    Each camera's scene frame (:func:`bundle_train_frames`), ``left_NNNNNN``, has the number
+    that indexes ``gt/trajectories.npz``.
+    """
+    cams, ids = bundle_train_frames(bundle, scene_dir)
+    idx = [int(i.rsplit("_", 1)[1]) for i in ids]
+    times = [float(c["time"]) for c in cams]
     with np.load(Path(scene_dir) / "gt" / "trajectories.npz", allow_pickle=False) as traj:
         points, dynamic = traj["points"][:, idx], traj["is_dynamic"].astype(bool)
     return points, np.asarray(times, np.float32), dynamic

@@ -66,27 +66,24 @@ def kept_on_objects(bundle_dir, scene_dir) -> dict:
 
     from ..bundle import load_bundle
     from ..geometry.camera import project
-    from ..io import load_clip
     from ..train.model import model_from_bundle
+    from .node_motion import bundle_train_frames
 
     bundle = load_bundle(bundle_dir)
     model = model_from_bundle(bundle)
-    clip = load_clip(scene_dir)
     ids = json.loads((Path(scene_dir) / "gt" / "objects.json").read_text())["object_ids"]
     names = {int(v): k for k, v in ids.items() if int(v) != 0}
     objects = sorted(names)
-    cams = [c for c in bundle.scene["cameras"] if c.get("split", "train") == "train"]
-    start = int(clip.meta.get("frame_start", 1)) if isinstance(clip.meta, dict) else 1
+    cams, frame_ids = bundle_train_frames(bundle, scene_dir)
     with torch.no_grad():
         opaque = (model.opacities().reshape(-1) > MIN_OPACITY).numpy()
         labels = np.full((len(cams), int(opaque.sum())), -1, np.int64)
         visible = np.zeros((len(cams), len(objects)), bool)
-        for t, c in enumerate(cams):  # loop over frames
-            i = int(c["clip_index"]) if "clip_index" in c else int(c["frame"]) - start
-            oid = cv2.imread(str(Path(scene_dir) / "gt" / "object_id" / f"{clip.frame_ids[i]}.png"),
-                             cv2.IMREAD_UNCHANGED)
+        for t, (c, fid) in enumerate(zip(cams, frame_ids)):  # loop over frames
+            path = Path(scene_dir) / "gt" / "object_id" / f"{fid}.png"
+            oid = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if oid is None:
-                raise FileNotFoundError(f"{scene_dir}/gt/object_id/{clip.frame_ids[i]}.png")
+                raise FileNotFoundError(path)
             oid = oid if oid.ndim == 2 else oid[..., 0]
             means, _ = model.deform(float(c["time"]))
             uv, z = project(torch.as_tensor(np.asarray(c["K"]), dtype=torch.float32),
