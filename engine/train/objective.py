@@ -235,15 +235,18 @@ class Objective:
             return None
         if self.mask_dist is None:
             self.mask_dist = L.mask_distance(d.fg, self.cfg.dynamic_threshold)
-        dist = self.mask_dist[f]
+            # frames with a pull somewhere (all 0: nothing moving, or everything), once per run
+            self._mask_pulls = (self.mask_dist.flatten(1) > 0).any(1).tolist()
+        if not self._mask_pulls[f]:
+            return None
         dyn = torch.nonzero(m.gauss_dyn).squeeze(1)
-        if len(dyn) == 0 or not bool((dist > 0).any()):
+        if len(dyn) == 0:
             return None
         if len(dyn) > 4096:
             dyn = dyn[torch.randperm(len(dyn), generator=self.gen)[:4096].to(dyn.device)]
         uv, z = project(d.K[f], d.w2c[f], means_t[dyn])
         uv = torch.where((z > 0).unsqueeze(-1), uv, uv.new_tensor(-1.0))  # behind the camera: not scored
-        return L.on_mask_loss(uv, dist, float(d.width) / 100.0)
+        return L.on_mask_loss(uv, self.mask_dist[f], float(d.width) / 100.0)
 
     # ---------------------------------------------------------------- static motion
     def static_motion(self, model: DynamicScene, pos_t: torch.Tensor, rot_t: torch.Tensor,
