@@ -31,7 +31,7 @@ from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
-ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth": 1, "dynamic": 5}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth": 2, "dynamic": 6}
 
 
 @dataclass
