@@ -226,7 +226,8 @@ def check_gaussians(g: GaussianArrays, path: str | os.PathLike | None = None) ->
 # Nodes (nodes.npz)
 # ----------------------------------------------------------------------------------
 _NODE_REQUIRED = ("centers", "radii", "key_times", "pos_keys", "pos_tangents", "rot_keys", "rot_tangents")
-_NODE_OPTIONAL = ("p_dyn", "bind_idx", "bind_w", "graph_idx", "pos_tangents_in", "rot_tangents_in", "key_mask")
+_NODE_OPTIONAL = ("p_dyn", "bind_idx", "bind_w", "graph_idx", "pos_tangents_in", "rot_tangents_in", "key_mask",
+                  "gauss_t_center", "gauss_lifespan")
 
 
 @dataclasses.dataclass
@@ -254,6 +255,12 @@ class NodeArrays:
         engine evaluates every knot alike (the curve is the same); Blender gets keyframes
         only where it is True. Every row has a True. Training writes none (all its knots
         are trained); fine-tuning leaves ``nodes.npz`` as it is.
+    gauss_t_center, gauss_lifespan : (G,) optional, both or neither, rows as ``bind_idx``:
+        a Gaussian's lifespan. Its opacity at engine time ``t`` is
+        ``opacity * exp(-0.5 ((t - gauss_t_center) / gauss_lifespan)^2)`` where
+        ``gauss_lifespan > 0`` and ``opacity`` where it is 0 (always visible). Training
+        writes them when moving Gaussians live around the frame they were seeded from
+        (``TrainConfig.lifespan``, :mod:`engine.train.lifespan`).
     """
 
     centers: np.ndarray
@@ -270,6 +277,8 @@ class NodeArrays:
     pos_tangents_in: np.ndarray | None = None
     rot_tangents_in: np.ndarray | None = None
     key_mask: np.ndarray | None = None
+    gauss_t_center: np.ndarray | None = None
+    gauss_lifespan: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -331,6 +340,16 @@ class NodeArrays:
             if not np.issubdtype(idx.dtype, np.integer) or (idx.size and (idx.min() < 0 or idx.max() >= n)):
                 raise InputError("bind_idx must hold node indices in [0, N)", path, fix)
             a["bind_idx"] = idx.astype(np.int64)
+        if ("gauss_t_center" in a) != ("gauss_lifespan" in a):
+            raise InputError("gauss_t_center and gauss_lifespan come together (one is missing)", path, fix)
+        if "gauss_lifespan" in a:
+            g = a["bind_idx"].shape[0] if "bind_idx" in a else -1
+            for key in ("gauss_t_center", "gauss_lifespan"):
+                if a[key].shape != (g,):
+                    raise InputError(f"array {key!r} has shape {a[key].shape}; expected ({g},) "
+                                     "(one value per bound Gaussian)", path, fix)
+            if (a["gauss_lifespan"] < 0).any():
+                raise InputError("gauss_lifespan must be >= 0 (0 = always visible)", path, fix)
         if "graph_idx" in a:
             gi = a["graph_idx"]
             if gi.ndim != 2 or gi.shape[0] != n or not np.issubdtype(gi.dtype, np.integer) or (

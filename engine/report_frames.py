@@ -60,7 +60,7 @@ def render_training_rows(bundle, cams: list[dict], clip_path=None, device: str =
             means, quats = model.deform(float(c["time"]))
             out = render_scene(model, means, quats, torch.as_tensor(np.asarray(c["K"]), dtype=torch.float32, device=dev),
                                torch.as_tensor(np.asarray(c["w2c"]), dtype=torch.float32, device=dev), w, h,
-                               backend=backend)
+                               backend=backend, time=float(c["time"]))
             pred = (out.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
             m = _mask_for(clip, i)
             if m is not None:

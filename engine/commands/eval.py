@@ -219,7 +219,7 @@ def evaluate_bundle(bundle_dir, clip_path=None, lpips_onnx=None, split: str = "v
             out = render_scene(model, means, quats, torch.as_tensor(np.asarray(c["K"]), dtype=torch.float32,
                                                                   device=dev),
                                torch.as_tensor(np.asarray(c["w2c"]), dtype=torch.float32, device=dev), w, h,
-                               backend=backend)
+                               backend=backend, time=float(c["time"]))
             pred = out.rgb.clamp(0, 1)
             target = torch.as_tensor(gt, device=dev).float() / 255.0
             row = {"frame": int(c["frame"]), "time": float(c["time"]),

@@ -55,8 +55,10 @@ def run(args, reporter):
             for i, f in enumerate(frames):
                 t = float(np.clip(B.time_of_frame(bundle.scene, f), 0, 1))
                 means, quats = model.deform(t)
+                # Gaussians with a lifespan carry their opacity at this frame
+                opacity = model.opacities_at(t).clamp(1e-7, 1 - 1e-7)
                 moved = B.GaussianArrays(means=means.numpy(), quats=quats.numpy(), log_scales=g.log_scales,
-                                         opacity_logits=g.opacity_logits, sh=g.sh)
+                                         opacity_logits=torch.logit(opacity).numpy(), sh=g.sh)
                 B.write_ply(out_dir / f"frame_{f:05d}.ply", moved)
                 reporter.progress("export", i + 1, len(frames))
         results["ply_sequence"] = str(out_dir)

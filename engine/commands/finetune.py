@@ -92,7 +92,8 @@ def _render(model, view, backend):
     from ..train.render import render_scene
 
     means, quats = model.deform(view["time"])
-    return render_scene(model, means, quats, view["K"], view["w2c"], view["width"], view["height"], backend=backend)
+    return render_scene(model, means, quats, view["K"], view["w2c"], view["width"], view["height"], backend=backend,
+                        time=view["time"])
 
 
 def mean_psnr(model, views, backend="auto") -> float:

@@ -86,7 +86,7 @@ def run(args, reporter):
             means, quats = model.deform(t)
             out = render_scene(model, means, quats, torch.as_tensor(K, dtype=torch.float32, device=device),
                                torch.as_tensor(w2c, dtype=torch.float32, device=device), int(w), int(h),
-                               backend=args.backend)
+                               backend=args.backend, time=t)
             img = (out.rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
             path = out_dir / f"frame_{int(round(frame)):05d}.png"
             with atomic_path(path) as tmp:

@@ -117,7 +117,8 @@ def model_from_state(sd: dict, cfg, extent: float, device):
     """The :class:`~engine.train.model.DynamicScene` a checkpoint's model ``state_dict``
     describes: built with its shapes (``means [G, 3]``, ``node_centers [N, 3]``, ``key_times
     [K]``, ...), then loaded with its exact values. Fills in (in ``sd``) the tensors that
-    checkpoints from before the static-motion score and the static / dynamic split lack.
+    checkpoints from before the static-motion score, the static / dynamic split and the
+    Gaussian lifespans lack.
     """
     from .model import DynamicScene
 
@@ -128,6 +129,9 @@ def model_from_state(sd: dict, cfg, extent: float, device):
     # a checkpoint from before the static / dynamic split: one class
     sd.setdefault("node_dyn", torch.ones(sd["node_p_dyn"].shape, dtype=torch.bool))
     sd.setdefault("gauss_dyn", torch.ones(sd["means"].shape[0], dtype=torch.bool))
+    # a checkpoint from before Gaussian lifespans: every Gaussian always visible
+    sd.setdefault("gauss_t_center", torch.zeros(sd["means"].shape[0]))
+    sd.setdefault("gauss_lifespan", torch.zeros(sd["means"].shape[0]))
     g = sd["means"].shape[0]
     # Rebuild the model with the checkpoint's shapes, then load exact values.
     nodes_keys = sd.get("pos_keys")

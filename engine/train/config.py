@@ -29,6 +29,8 @@ REMOVED_KEYS = ("batch_frames", "eval_every")
 INIT_METHODS = ("mani", "fps", "voxel", "tracklet")
 MOTION_MODELS = ("spline", "mlp", "per_frame")
 MOTION_INITS = ("auto", "tracks", "rest")
+#: TrainConfig.lifespan (engine/train/lifespan.py)
+LIFESPAN_MODES = ("auto", "on", "off")
 
 
 @dataclass
@@ -103,6 +105,9 @@ class TrainConfig:
                                          # nodes only and are seeded from the moving pixels of every frame
     dynamic_threshold: float = 0.5       # dynamic prior at or above this = moving (nodes, Gaussians, tracks)
     dynamic_gaussians: int = 6000        # Gaussians seeded on moving pixels, spread over all training frames
+    lifespan: str = "auto"               # moving Gaussians visible around their seed frame only (engine/train/
+                                         # lifespan.py): on | off | auto (on when the cameras do not translate)
+    lifespan_frames: float = 1.3         # ... the lifespan's sigma in training-frame intervals
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     node_rotations: str = "tracks"       # initial node rotations: "tracks" (rigid rotation of each node's lifted
@@ -174,6 +179,8 @@ class TrainConfig:
             bad("motion_init", f"must be one of {MOTION_INITS}")
         if self.node_rotations not in ("tracks", "identity"):
             bad("node_rotations", "must be tracks or identity")
+        if self.lifespan not in LIFESPAN_MODES:
+            bad("lifespan", f"must be one of {LIFESPAN_MODES}")
         if self.device not in ("auto", "cpu", "cuda"):
             bad("device", "must be auto, cpu or cuda")
         if self.backend not in ("auto", "reference", "cpu", "gsplat"):
@@ -197,7 +204,7 @@ class TrainConfig:
                 bad(key, f"is {getattr(self, key)}, above the largest sensible value {limit}")
         for key in [f.name for f in dataclasses.fields(self) if f.name.startswith("lr_")] + [
                 "densify_grad_threshold", "percent_dense", "opacity_prune", "node_spawn_factor",
-                "max_nodes_factor", "node_prune_weight"]:
+                "max_nodes_factor", "node_prune_weight", "lifespan_frames"]:
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
         if not (0 <= self.canonical_time <= 1 or self.canonical_time == -1):

@@ -15,7 +15,7 @@ from .model import DynamicScene
 
 def bundle_arrays(model: DynamicScene) -> tuple[B.NodeArrays, B.GaussianArrays]:
     """The model's nodes (centres [N, 3], radii [N], Hermite keys and tangents [N, K, ...],
-    ``p_dyn``, binding [G, k], graph [N, k] or None) and Gaussians (means [G, 3],
+    ``p_dyn``, binding [G, k], graph [N, k] or None, lifespans [G] when any) and Gaussians (means [G, 3],
     normalised quats [G, 4], log-scales, opacity logits, SH [G, C, 3]) as numpy arrays."""
     m = model
     key_times, pos_keys, pos_tan, rot_keys, rot_tan = m.export_splines()
@@ -25,6 +25,9 @@ def bundle_arrays(model: DynamicScene) -> tuple[B.NodeArrays, B.GaussianArrays]:
         rot_keys=rot_keys.cpu().numpy(), rot_tangents=rot_tan.cpu().numpy(),
         p_dyn=m.node_p_dyn.cpu().numpy(), bind_idx=m.bind_idx.cpu().numpy(), bind_w=m.bind_w.cpu().numpy(),
         graph_idx=m.graph_idx.cpu().numpy() if m.graph_idx.shape[1] else None)
+    if bool((m.gauss_lifespan > 0).any()):  # bundles without lifespans stay as they were
+        nodes.gauss_t_center = m.gauss_t_center.cpu().numpy()
+        nodes.gauss_lifespan = m.gauss_lifespan.cpu().numpy()
     gaussians = B.GaussianArrays(means=m.means.detach().cpu().numpy(),
                                  quats=quat_normalize(m.quats.detach()).cpu().numpy(),
                                  log_scales=m.log_scales.detach().cpu().numpy(),

@@ -24,6 +24,7 @@ from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
 from ..geometry.quaternion import quat_conj, quat_identity, quat_mul, quat_normalize
 from .config import TrainConfig
 from .data import TrainingData
+from .lifespan import resolve_lifespan
 from .model import DynamicScene
 
 
@@ -230,6 +231,11 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
     if node_dyn is not None:
         model.node_dyn = node_dyn.clone()
         model.gauss_dyn = g_dyn
+        life = resolve_lifespan(cfg.lifespan, cfg.lifespan_frames, data.times[data.train_idx],
+                                data.w2c[data.train_idx], data.extent)
+        if life > 0:  # each moving Gaussian lives around the frame it was seeded from
+            model.gauss_t_center[len(s_pts):] = d_tms.reshape(-1).to(model.gauss_t_center)
+            model.gauss_lifespan[len(s_pts):] = life
         model.rebind()
     return model
 

@@ -31,6 +31,7 @@ from ..geometry.dualquat import dq_apply_points, dq_apply_rotations, dq_blend, n
 from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_eval_quat
 from ..geometry.quaternion import quat_identity, quat_normalize
 from .fused import fused_available, fused_deform
+from .lifespan import lifespan_window
 from .split import bind_within_class, knn_rbf
 
 # Use the fused CPU deformation (engine/train/fused.py) where it applies; the torch
@@ -134,7 +135,9 @@ class DynamicScene(nn.Module):
     gradient); key_times [K];
     bind_idx [G, K_b], bind_w [G, K_b]; graph_idx [N, k]; node_p_dyn [N]; node_fg [N];
     node_dyn [N] bool, gauss_dyn [G] bool: the static / dynamic split
-    (``engine/train/split.py``; all True = one class, the model before the split).
+    (``engine/train/split.py``; all True = one class, the model before the split);
+    gauss_t_center [G], gauss_lifespan [G]: each Gaussian's lifespan in engine time
+    (:meth:`opacities_at`; lifespan 0 = always visible, the default).
     """
 
     def __init__(self, means, colors, scales, opacities, node_centers, node_radii, key_times, pos_keys,
@@ -181,6 +184,8 @@ class DynamicScene(nn.Module):
             self.rot_keys = nn.Parameter(rot_keys.clone())
         self.register_buffer("node_dyn", torch.ones(n, dtype=torch.bool, device=dev))
         self.register_buffer("gauss_dyn", torch.ones(g, dtype=torch.bool, device=dev))
+        self.register_buffer("gauss_t_center", torch.zeros(g, device=dev, dtype=dt))
+        self.register_buffer("gauss_lifespan", torch.zeros(g, device=dev, dtype=dt))
         self.register_buffer("bind_idx", torch.zeros(g, self.bind_k, dtype=torch.long, device=dev))
         self.register_buffer("bind_w", torch.zeros(g, self.bind_k, device=dev, dtype=dt))
         self.rebind()
@@ -199,7 +204,17 @@ class DynamicScene(nn.Module):
         return torch.exp(self.log_scales)
 
     def opacities(self) -> torch.Tensor:
+        """Opacity [G] without lifespans (what densification prunes on)."""
         return torch.sigmoid(self.opacity_logits)
+
+    def opacities_at(self, t: float | None) -> torch.Tensor:
+        """Opacity [G] at engine time ``t``: :meth:`opacities` times each Gaussian's lifespan
+        window ``exp(-0.5 ((t - t_center) / lifespan)^2)`` (1 where the lifespan is 0, and
+        everywhere when ``t`` is None)."""
+        opacity = self.opacities()
+        if t is None or not bool((self.gauss_lifespan > 0).any()):
+            return opacity
+        return opacity * lifespan_window(float(t), self.gauss_t_center, self.gauss_lifespan)
 
     def sh(self) -> torch.Tensor:
         """[G, M, 3] spherical-harmonic coefficients."""
@@ -421,5 +436,8 @@ def model_from_bundle(bundle, device="cpu") -> DynamicScene:
     m.set_explicit_tangents(t(nd.pos_tangents), t(nd.rot_tangents),
                             None if nd.pos_tangents_in is None else t(nd.pos_tangents_in),
                             None if nd.rot_tangents_in is None else t(nd.rot_tangents_in))
+    if nd.gauss_lifespan is not None:
+        m.gauss_t_center = t(nd.gauss_t_center)
+        m.gauss_lifespan = t(nd.gauss_lifespan)
     m.motion_source = cfg.get("motion", "spline")
     return m

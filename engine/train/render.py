@@ -33,7 +33,8 @@ def scene_colors(model, means: torch.Tensor, w2c: torch.Tensor) -> torch.Tensor:
 
 def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
                  width: int, height: int, colors: torch.Tensor | None = None, backend: str = "auto",
-                 background: torch.Tensor | None = None, extra: torch.Tensor | None = None):
+                 background: torch.Tensor | None = None, extra: torch.Tensor | None = None,
+                 time: float | None = None):
     """Render deformed Gaussians of ``model`` from one camera.
 
     Parameters
@@ -50,13 +51,17 @@ def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tenso
     extra : (G,), optional
         A per-Gaussian scalar composited in the same pass (``RenderOutput.extra [H, W, 1]``),
         e.g. the dynamic score of the mask term; see :func:`engine.raster.render`.
+    time : float, optional
+        Engine time of the render: Gaussians with a lifespan are windowed around their own
+        time (:meth:`~engine.train.model.DynamicScene.opacities_at`); None = every Gaussian
+        at full opacity.
 
     Returns
     -------
     raster.RenderOutput with ``rgb [H, W, 3]``, ``alpha [H, W, 1]``, ``depth [H, W, 1]``,
     ``radii [G]`` and ``means2d [G, 2]`` (its ``.grad`` feeds densification).
     """
-    kwargs = dict(means=means, quats=quats, scales=model.scales(), opacities=model.opacities(), w2c=w2c, K=K,
+    kwargs = dict(means=means, quats=quats, scales=model.scales(), opacities=model.opacities_at(time), w2c=w2c, K=K,
                   width=width, height=height, background=background, backend=backend, extra=extra)
     if colors is not None:
         return raster.render(colors=colors, **kwargs)

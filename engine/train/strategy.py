@@ -21,7 +21,7 @@ from .config import TrainConfig
 from .data import TrainingData
 from .init_model import trajectory_fg_score
 from .model import DynamicScene
-from .param_edit import GAUSSIAN_PARAMS, NODE_PARAMS, edit_rows
+from .param_edit import GAUSSIAN_BUFFERS, GAUSSIAN_PARAMS, NODE_PARAMS, edit_rows
 from .split import graph_within_class
 
 
@@ -99,7 +99,7 @@ class GaussianDensifyStrategy:
         when its largest scale exceeds ``percent_dense`` of the scene extent. At most
         ``max_gaussians - G`` are added (the hottest first). A split draws its copy's offset
         from the Gaussian (``gen``) and shrinks both by 1.6; the copies are appended after
-        the kept rows and inherit ``gauss_dyn``. The statistics are not reset here (the
+        the kept rows and inherit ``gauss_dyn`` and the lifespan (:data:`GAUSSIAN_BUFFERS`). The statistics are not reset here (the
         trainer does, after node densification).
         """
         cfg, m = self.cfg, model
@@ -131,11 +131,13 @@ class GaussianDensifyStrategy:
             # the split originals shrink too
             m.log_scales.data[split] -= math.log(1.6)
         keep = m.opacities() > cfg.opacity_prune
-        g_dyn = m.gauss_dyn[keep]
+        # per-Gaussian buffers follow their rows: kept ones, then the copies' sources
+        rows = {name: getattr(m, name)[keep] for name in GAUSSIAN_BUFFERS}
         if extra:
-            g_dyn = torch.cat([g_dyn, m.gauss_dyn[src]])
+            rows = {name: torch.cat([v, getattr(m, name)[src]]) for name, v in rows.items()}
         edit_rows(m, opt, keep, extra or None)
-        m.gauss_dyn = g_dyn.contiguous()
+        for name, value in rows.items():
+            setattr(m, name, value.contiguous())
 
     @staticmethod
     def reset_opacity(model: DynamicScene, opt: torch.optim.Adam) -> None:

@@ -160,7 +160,8 @@ class Trainer:
         mask_now = w.mask > 0 and d.fg is not None and self.step % 4 == 0
         with ph("raster_fwd"):
             out = render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, colors=colors,
-                               backend=self.cfg.backend, extra=self.objective.dynamic_score(m) if mask_now else None)
+                               backend=self.cfg.backend, extra=self.objective.dynamic_score(m) if mask_now else None,
+                               time=t)
         with ph("losses"):
             return self.objective.terms(m, self.step, f, t, out, means_t, quats_t, (pos_t, rot_t, dq_nodes))
 
@@ -327,7 +328,8 @@ class Trainer:
         d, m = self.data, self.model
         t = float(d.times[f]) if t is None else t
         means_t, quats_t = m.deform(t)
-        return render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, backend=self.cfg.backend)
+        return render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, backend=self.cfg.backend,
+                            time=t)
 
     @torch.no_grad()
     def evaluate(self, idx: torch.Tensor | None = None) -> dict:
@@ -384,6 +386,13 @@ class Trainer:
         """Train, evaluate on held-out frames, write the bundle; return a summary."""
         self.reporter.log(f"training {self.model.num_gaussians} Gaussians, {self.model.num_nodes} nodes, "
                           f"{self.cfg.steps} steps ({self.cfg.preset})")
+        living = self.model.gauss_lifespan > 0
+        if bool(living.any()):
+            self.reporter.log(f"moving Gaussians live around their own frame ({int(living.sum())} of them, lifespan "
+                              f"{self.cfg.lifespan_frames:g} frame intervals; lifespan {self.cfg.lifespan}: "
+                              "the camera does not translate)" if self.cfg.lifespan == "auto" else
+                              f"moving Gaussians live around their own frame ({int(living.sum())} of them, lifespan "
+                              f"{self.cfg.lifespan_frames:g} frame intervals)")
         # the Numba kernels load (or, on a first run, compile) as their own progress stage,
         # not inside the first render below
         warm_kernels(self.reporter, self.device, self.cfg.backend)

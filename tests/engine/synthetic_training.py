@@ -21,7 +21,9 @@ def blob_offset(t: torch.Tensor) -> torch.Tensor:
     return torch.stack([-0.6 + 1.2 * t, torch.zeros_like(t), 0.25 * torch.sin(np.pi * t)], -1)
 
 
-def make_scene(frames: int = 16, width: int = 64, height: int = 48, seed: int = 0):
+def make_scene(frames: int = 16, width: int = 64, height: int = 48, seed: int = 0, fixed_camera: bool = False):
+    """A textured wall and a red blob moving across it, seen by a swaying camera (the
+    held-out frames half a unit to the side), or with ``fixed_camera`` from one place."""
     g = torch.Generator().manual_seed(seed)
     nw, nb = 2500, 400
     wall = torch.stack([torch.rand(nw, generator=g) * 4 - 2, torch.full((nw,), 1.5),
@@ -37,8 +39,8 @@ def make_scene(frames: int = 16, width: int = 64, height: int = 48, seed: int = 
     val = torch.arange(frames) % 4 == 3
     for f in range(frames):
         t = times[f]
-        sway = 0.6 * torch.sin(2 * np.pi * t)
-        eye = torch.tensor([float(sway) + (0.5 if val[f] else 0.0), -4.0, 0.3])
+        sway = 0.0 if fixed_camera else 0.6 * torch.sin(2 * np.pi * t)
+        eye = torch.tensor([float(sway) + (0.5 if val[f] and not fixed_camera else 0.0), -4.0, 0.3])
         w2c = look_at(eye, torch.tensor([0.0, 1.0, 0.0])).float()
         means = torch.cat([wall, blob + blob_offset(t.reshape(1))[0]])
         cols = torch.cat([wall_col, blob_col]).clamp(0, 1)

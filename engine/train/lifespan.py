@@ -1,0 +1,62 @@
+"""Gaussian lifespans: moving Gaussians visible around the frame they were seeded from.
+
+Why: with a fixed camera the moving things of a clip (hands, cups) get their dynamic
+Gaussians seeded on every training frame, and node paths that follow them only a few frames
+(the weight-free tracks end on fast or textureless parts). A Gaussian that is right at its
+own frame is then wrong at most others, and the optimiser's compromise is to make it nearly
+transparent (median opacity of the dynamic Gaussians 0.10 on ``cups.mp4``, 0.22 for the
+static ones): the moving things render as ghosts. A lifespan lets each one be opaque where it
+is right. With a moving camera the same Gaussian seen from many positions over time is what
+fixes its depth, so a lifespan there fits the training views but loses the held-out camera
+(docs/benchmarks.md, "Gaussian lifespans"): ``auto`` gives lifespans only when the training
+cameras do not translate (a fixed or purely rotating camera: no parallax to lose).
+
+The window is ``exp(-0.5 ((t - t_center) / lifespan)^2)`` on the opacity
+(:meth:`engine.train.model.DynamicScene.opacities_at`); a lifespan of 0 is always visible.
+The bundle stores both per Gaussian (``nodes.npz`` ``gauss_t_center`` / ``gauss_lifespan``)
+and the Blender preview applies the same window per frame.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .config import LIFESPAN_MODES
+
+#: camera centres within this fraction of the scene extent of each other: a camera that does not translate
+FIXED_CAMERA_TOL = 1e-4
+
+
+def lifespan_window(t: float, t_center: torch.Tensor, lifespan: torch.Tensor) -> torch.Tensor:
+    """Opacity factor [G] at engine time ``t``: ``exp(-0.5 ((t - t_center) / lifespan)^2)``
+    where ``lifespan [G] > 0``, 1 where it is 0 (``t_center [G]``)."""
+    live = lifespan > 0
+    z = (t - t_center) / torch.where(live, lifespan, torch.ones_like(lifespan))
+    return torch.where(live, torch.exp(-0.5 * z * z), torch.ones_like(z))
+
+
+def camera_translates(w2c: torch.Tensor, extent: float) -> bool:
+    """Whether the camera centres of ``w2c [F, 4, 4]`` move by more than
+    :data:`FIXED_CAMERA_TOL` of the scene ``extent``."""
+    R, tr = w2c[:, :3, :3], w2c[:, :3, 3]
+    centres = -(R.transpose(1, 2) @ tr.unsqueeze(-1)).squeeze(-1)
+    spread = (centres - centres.mean(0)).norm(dim=1).max()
+    return bool(spread > FIXED_CAMERA_TOL * max(float(extent), 1e-12))
+
+
+def resolve_lifespan(mode: str, frames: float, train_times: torch.Tensor, train_w2c: torch.Tensor,
+                     extent: float) -> float:
+    """The lifespan (engine time) the moving Gaussians get, 0 for none.
+
+    ``mode`` 'on' | 'off' | 'auto' (on when the training cameras do not translate,
+    :func:`camera_translates`); ``frames`` = the lifespan in training-frame intervals (the
+    median gap between the sorted ``train_times [F]``).
+    """
+    if mode not in LIFESPAN_MODES:
+        raise ValueError(f"lifespan must be one of {LIFESPAN_MODES}, not {mode!r}")
+    if mode == "off" or frames <= 0 or len(train_times) < 2:
+        return 0.0
+    if mode == "auto" and camera_translates(train_w2c, extent):
+        return 0.0
+    gap = torch.diff(torch.sort(train_times.flatten()).values).median()
+    return float(frames * gap)

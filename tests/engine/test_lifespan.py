@@ -1,0 +1,142 @@
+"""Gaussian lifespans (engine/train/lifespan.py): moving Gaussians visible around their own frame."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from engine import bundle as B
+from engine.errors import InputError
+from engine.train.config import preset_config
+from engine.train.export import bundle_arrays
+from engine.train.init_model import build_model
+from engine.train.lifespan import camera_translates, lifespan_window, resolve_lifespan
+from engine.train.model import model_from_bundle
+from engine.train.render import render_scene
+
+from .synthetic_training import make_nodes, make_scene
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _cfg(**kw):
+    return preset_config("preview", gaussians_per_frame=800, init_keyframes=4, num_nodes=25,
+                         dynamic_gaussians=600, **kw)
+
+
+def test_window_is_a_gaussian_in_time_and_one_without_a_lifespan():
+    tc = torch.tensor([0.5, 0.5, 0.2])
+    life = torch.tensor([0.1, 0.0, 0.05])
+    w = lifespan_window(0.7, tc, life)
+    torch.testing.assert_close(w, torch.tensor([math.exp(-2.0), 1.0, math.exp(-0.5 * 100.0)]))
+    assert lifespan_window(0.5, tc, life)[0] == 1.0
+
+
+def test_auto_gives_lifespans_only_to_a_camera_that_does_not_translate():
+    times = torch.linspace(0, 1, 11)
+    eye = torch.eye(4).expand(11, 4, 4).clone()
+    turning = eye.clone()  # a camera that only rotates about its centre: still no parallax
+    for i, a in enumerate(torch.linspace(0, 0.3, 11)):
+        turning[i, 0, 0], turning[i, 0, 2], turning[i, 2, 0], turning[i, 2, 2] = a.cos(), a.sin(), -a.sin(), a.cos()
+    moving = eye.clone()
+    moving[:, 0, 3] = torch.linspace(0, 0.5, 11)
+    assert not camera_translates(eye, 2.0) and not camera_translates(turning, 2.0) and camera_translates(moving, 2.0)
+    assert resolve_lifespan("auto", 1.5, times, eye, 2.0) == pytest.approx(0.15)  # 1.5 frame gaps of 0.1
+    assert resolve_lifespan("auto", 1.5, times, turning, 2.0) == pytest.approx(0.15)
+    assert resolve_lifespan("auto", 1.5, times, moving, 2.0) == 0.0
+    assert resolve_lifespan("on", 1.5, times, moving, 2.0) == pytest.approx(0.15)
+    assert resolve_lifespan("off", 1.5, times, eye, 2.0) == 0.0
+    with pytest.raises(ValueError):
+        resolve_lifespan("sometimes", 1.5, times, eye, 2.0)
+
+
+def test_fixed_camera_model_gives_moving_gaussians_their_seed_time():
+    data, truth = make_scene(fixed_camera=True)
+    model = build_model(data, make_nodes(truth), _cfg(), torch.Generator().manual_seed(0))
+    dyn, life = model.gauss_dyn, model.gauss_lifespan
+    assert bool((life[dyn] > 0).all()) and bool((life[~dyn] == 0).all())
+    gap = float(torch.diff(data.times[data.train_idx]).median())
+    torch.testing.assert_close(life[dyn], torch.full_like(life[dyn], 1.3 * gap))
+    train_times = set(np.round(data.times[data.train_idx].numpy(), 6).tolist())
+    assert set(np.round(model.gauss_t_center[dyn].numpy(), 6).tolist()) <= train_times
+    # the swaying camera of the same scene: no lifespans (auto), unless asked for
+    data2, truth2 = make_scene()
+    assert not bool((build_model(data2, make_nodes(truth2), _cfg(), torch.Generator().manual_seed(0))
+                     .gauss_lifespan > 0).any())
+    forced = build_model(data2, make_nodes(truth2), _cfg(lifespan="on"), torch.Generator().manual_seed(0))
+    assert bool((forced.gauss_lifespan[forced.gauss_dyn] > 0).all())
+
+
+def test_a_render_shows_a_gaussian_with_a_lifespan_only_around_its_time():
+    data, truth = make_scene(fixed_camera=True)
+    model = build_model(data, make_nodes(truth), _cfg(), torch.Generator().manual_seed(0))
+    f = int(data.train_idx[len(data.train_idx) // 2])
+    t = float(data.times[f])
+    own = model.gauss_dyn & (model.gauss_t_center == t)
+    with torch.no_grad():
+        model.opacity_logits[~own] = -20.0  # only frame f's moving Gaussians can show, and opaque
+        model.opacity_logits[own] = 5.0
+        means, quats = model.deform(t)
+        near = render_scene(model, means, quats, data.K[f], data.w2c[f], data.width, data.height, time=t)
+        far = render_scene(model, means, quats, data.K[f], data.w2c[f], data.width, data.height, time=t + 0.5)
+        always = render_scene(model, means, quats, data.K[f], data.w2c[f], data.width, data.height)
+    blob = data.fg[f] > 0.5
+    assert float(near.alpha[..., 0][blob].mean()) > 0.5
+    assert float(far.alpha[..., 0][blob].max()) < 1e-3  # gone half a clip later
+    torch.testing.assert_close(always.alpha, near.alpha, atol=0.05, rtol=0)  # windowed at t: itself
+    torch.testing.assert_close(model.opacities_at(None), model.opacities())
+
+
+def test_training_densifies_with_the_lifespans_and_the_bundle_round_trips(tmp_path):
+    from engine.train.trainer import Trainer
+
+    data, truth = make_scene(fixed_camera=True)
+    cfg = _cfg(steps=30, warmup_static_steps=0, checkpoint_every=0, densify_from=10, densify_every=10,
+               densify_until=30, densify_grad_threshold=0.0, max_gaussians=4000)
+    trainer = Trainer(data, make_nodes(truth), cfg, tmp_path / "run")
+    g0 = trainer.model.num_gaussians
+    trainer.train()
+    m = trainer.model
+    assert m.num_gaussians > g0  # densification ran (threshold 0: every seen Gaussian is hot)
+    for name in ("gauss_dyn", "gauss_t_center", "gauss_lifespan"):
+        assert getattr(m, name).shape == (m.num_gaussians,)
+    assert bool(((m.gauss_lifespan > 0) == m.gauss_dyn).all())  # copies inherit their source's lifespan
+    nodes, gaussians = bundle_arrays(m)
+    assert nodes.gauss_lifespan is not None
+    trainer.export_bundle()
+    bundle = B.load_bundle(tmp_path / "run")
+    loaded = model_from_bundle(bundle)
+    for t in (0.0, 0.37, 1.0):
+        torch.testing.assert_close(loaded.opacities_at(t), m.opacities_at(t).detach(), atol=1e-6, rtol=1e-5)
+    # a per-frame PLY export carries each Gaussian's opacity at that frame
+    res = subprocess.run([sys.executable, "-m", "engine", "export", str(tmp_path / "run"), "--ply-sequence",
+                          str(tmp_path / "seq"), "--frames", "1,9"], cwd=REPO, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr
+    for frame in (1, 9):
+        t = float(np.clip(B.time_of_frame(bundle.scene, frame), 0, 1))
+        exported = torch.sigmoid(torch.tensor(np.array(B.read_ply(tmp_path / "seq" / f"frame_{frame:05d}.ply").opacity_logits)))
+        torch.testing.assert_close(exported, loaded.opacities_at(t).float(), atol=1e-5, rtol=1e-4)
+
+
+def test_bundle_refuses_broken_lifespans():
+    data, truth = make_scene(fixed_camera=True)
+    model = build_model(data, make_nodes(truth), _cfg(), torch.Generator().manual_seed(0))
+    arrays = bundle_arrays(model)[0].to_dict()
+    B.NodeArrays.from_dict(arrays)  # the model's own arrays are valid
+    for change, message in ((lambda a: a.pop("gauss_lifespan"), "come together"),
+                            (lambda a: a.__setitem__("gauss_lifespan", -a["gauss_lifespan"] - 1), ">= 0"),
+                            (lambda a: a.__setitem__("gauss_t_center", a["gauss_t_center"][:-1]), "one value per"),
+                            (lambda a: a.__setitem__("gauss_t_center", a["gauss_t_center"] * np.nan), "finite")):
+        broken = dict(arrays)
+        change(broken)
+        with pytest.raises(InputError, match=message):
+            B.NodeArrays.from_dict(broken)
+    swaying = build_model(*(lambda d, t: (d, make_nodes(t)))(*make_scene()), _cfg(), torch.Generator().manual_seed(0))
+    assert bundle_arrays(swaying)[0].gauss_lifespan is None  # bundles without lifespans stay as they were
