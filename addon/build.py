@@ -9,12 +9,16 @@
   with one vertex per kept Gaussian, skinned with dual quaternions;
 * point attributes on that mesh (``ms_color`` FLOAT_COLOR from the SH DC term,
   ``ms_opacity`` FLOAT, ``ms_scale`` FLOAT_VECTOR linear σ, ``ms_rot`` QUATERNION wxyz,
-  ``ms_index`` INT original Gaussian index, ``ms_center`` BOOLEAN, ``ms_aux`` INT);
+  ``ms_index`` INT original Gaussian index, ``ms_center`` BOOLEAN, ``ms_aux`` INT; and
+  ``ms_t_center`` / ``ms_lifespan`` FLOAT, engine time and σ, only for a bundle with
+  Gaussian lifespans, :func:`bundle_lifespans`);
 * a Geometry Nodes modifier after the Armature modifier. It makes a fresh point cloud
   (Points node + Sample Index of the deformed positions and ``ms_*`` attributes; Mesh to
   Points would copy the rig's N vertex groups onto every point, ~10 s/frame at 2000
   nodes): ``POINTS`` (radius = mean σ × "Radius Scale") or ``ELLIPSOIDS`` for Cycles
-  (Instance on Points of an 80-face ico-sphere enclosing 3σ, scaled by σ per axis);
+  (Instance on Points of an 80-face ico-sphere enclosing 3σ, scaled by σ per axis); with
+  lifespans the opacity it passes on follows the frame (:mod:`.preview`, inputs "Frame
+  Start" / "Frame End" = the bundle's time range);
 * an animated camera for the bundle's cameras (the scene camera only when there is none),
   and the scene frame range / fps. Render settings are :mod:`.render_setup`'s job.
 
@@ -109,8 +113,20 @@ def _set_attr(mesh, name: str, dtype: str, values, prop: str = "value") -> None:
     attr.data.foreach_set(prop, values.ravel())
 
 
-def set_gaussian_attributes(mesh, gaussians, keep, aux: bool) -> None:
-    """Point attributes of the kept Gaussians (repeated on their aux vertices)."""
+def bundle_lifespans(nodes):
+    """``(t_center, lifespan)`` ``(G,)`` float32 of a bundle whose Gaussians have lifespans
+    (some ``gauss_lifespan > 0``), else None (every Gaussian always visible)."""
+    if nodes is None or nodes.gauss_lifespan is None or not (np.asarray(nodes.gauss_lifespan) > 0).any():
+        return None
+    return (np.asarray(nodes.gauss_t_center, np.float32), np.asarray(nodes.gauss_lifespan, np.float32))
+
+
+def set_gaussian_attributes(mesh, gaussians, keep, aux: bool, lifespans=None) -> None:
+    """Point attributes of the kept Gaussians (repeated on their aux vertices).
+
+    ``lifespans``: :func:`bundle_lifespans` (all Gaussians' rows) or None; with it the mesh
+    also gets ``ms_t_center`` and ``ms_lifespan``.
+    """
     # The engine's colours are display-referred sRGB values; Blender shades in linear
     # light and applies the sRGB transform on output, so store them linearised.
     colors = np.concatenate([srgb_to_linear(gaussians.colors[keep]), np.ones((len(keep), 1))],
@@ -123,11 +139,13 @@ def set_gaussian_attributes(mesh, gaussians, keep, aux: bool) -> None:
     center = np.ones(g, dtype=bool)
     aux_idx = (g + AUX_AXES * np.arange(g)).astype(np.int32) if aux else np.zeros(g, np.int32)
     arrays = [colors, opac, scales, q, keep.astype(np.int32), center, aux_idx]
+    if lifespans is not None:
+        arrays += [np.asarray(a, np.float32)[keep] for a in lifespans]
     if aux:
         arrays = [np.concatenate([a, np.repeat(a, AUX_AXES, axis=0)]) for a in arrays]
         arrays[5][g:] = False
         arrays[6][g:] = 0
-    colors, opac, scales, q, idx, center, aux_idx = arrays
+    colors, opac, scales, q, idx, center, aux_idx = arrays[:7]
     _set_attr(mesh, "ms_color", "FLOAT_COLOR", colors, "color")
     _set_attr(mesh, "ms_opacity", "FLOAT", opac)
     _set_attr(mesh, "ms_scale", "FLOAT_VECTOR", scales, "vector")
@@ -135,6 +153,8 @@ def set_gaussian_attributes(mesh, gaussians, keep, aux: bool) -> None:
     _set_attr(mesh, "ms_index", "INT", idx)
     _set_attr(mesh, "ms_center", "BOOLEAN", center)
     _set_attr(mesh, "ms_aux", "INT", aux_idx)
+    for name, values in zip(("ms_t_center", "ms_lifespan"), arrays[7:]):
+        _set_attr(mesh, name, "FLOAT", values)
     mesh.update()
 
 
@@ -318,11 +338,12 @@ def _build_gaussians(col, name, b, out, density, preview, with_rig) -> None:
         mesh_obj = rig.build_points_mesh(f"{name}Gaussians", pts, col)
     timings["rig"] = _time.perf_counter() - t
     t = _time.perf_counter()
-    set_gaussian_attributes(mesh_obj.data, gs, keep, aux)
+    set_gaussian_attributes(mesh_obj.data, gs, keep, aux, bundle_lifespans(nodes))
     mesh_obj["ms_gaussians"] = len(keep)
     timings["attributes"] = _time.perf_counter() - t
     t = _time.perf_counter()
-    add_preview_modifier(mesh_obj, preview)
+    tm = b.scene["time"]
+    add_preview_modifier(mesh_obj, preview, frame_range=(float(tm["frame_start"]), float(tm["frame_end"])))
     out["mesh"], out["gaussians"] = mesh_obj, len(keep)
     timings["preview"] = _time.perf_counter() - t
 

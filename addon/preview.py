@@ -9,6 +9,14 @@ of an 80-face ico-sphere enclosing 3σ, scaled by σ per axis and rotated by Axe
 Rotation of the two deformed auxiliary vertices. The ellipsoid material's alpha is
 ``opacity · exp(−½ d²)`` with ``d`` the instance-space distance from the centre to the
 camera ray (σ units), cut at 3σ; back faces are transparent; colour is emitted.
+
+Lifespans: when the mesh carries ``ms_t_center`` / ``ms_lifespan`` (a bundle whose
+Gaussians live around one time), both trees multiply the ``ms_opacity`` they store on the
+points by ``exp(−½ ((t − ms_t_center) / ms_lifespan)²)``, ``t`` the engine time of the
+Scene Time frame through the modifier's "Frame Start" / "Frame End" inputs (the bundle's
+``scene.json`` range, :func:`engine.bundle.time_of_frame`), so viewport and renders see it
+per frame. A lifespan of 0 gives a factor of exactly 1 (the Math node's divide returns 0
+on a zero divisor). Meshes without the attributes get the tree without these nodes.
 """
 
 from __future__ import annotations
@@ -40,9 +48,12 @@ class _Tree:
     def __init__(self, name: str, inputs=()):
         self.tree = tree = bpy.data.node_groups.new(name, "GeometryNodeTree")
         tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-        for sock_name, default in inputs:
+        for sock_name, default, *low in inputs:  # (name, default[, minimum]): minimum 0, None for none
             s = tree.interface.new_socket(sock_name, in_out="INPUT", socket_type="NodeSocketFloat")
-            s.default_value, s.min_value = default, 0.0
+            s.default_value = default
+            low = low[0] if low else 0.0
+            if low is not None:
+                s.min_value = low
         tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
         self.N, self.L = tree.nodes, tree.links
         self.gin, self.gout = self.N.new("NodeGroupInput"), self.N.new("NodeGroupOutput")
@@ -83,9 +94,29 @@ class _Tree:
         self.link(value, _socket(n.inputs, "Value"))
         return n.outputs["Geometry"]
 
-    def splat_points(self, aux_per_gaussian: int):
+    def lifespan_window(self, geo):
+        """Field ``exp(−½ ((t − ms_t_center) / ms_lifespan)²)`` of the Gaussian at the
+        consuming index, ``t`` the engine time of the current frame.
+
+        ``t = (frame − Frame Start) / (Frame End − Frame Start)`` is
+        :func:`engine.bundle.time_of_frame` (0 for a one-frame range: the Math node's divide
+        returns 0 on a zero divisor). The same safe divide makes ``(t − t_c) / 0`` zero, so a
+        lifespan of 0 (always visible) gives ``exp(0)``, exactly 1.
+        """
+        frame = self.node("GeometryNodeInputSceneTime").outputs["Frame"]
+        start, end = self.gin.outputs["Frame Start"], self.gin.outputs["Frame End"]
+        t = self.math("DIVIDE", self.math("SUBTRACT", frame, start), self.math("SUBTRACT", end, start))
+        tc = self.sample(geo, _named_attr(self.N, "ms_t_center", "FLOAT"), "FLOAT", self.index)
+        life = self.sample(geo, _named_attr(self.N, "ms_lifespan", "FLOAT"), "FLOAT", self.index)
+        z = self.math("DIVIDE", self.math("SUBTRACT", t, tc), life)
+        return self.math("EXPONENT", self.math("MULTIPLY", self.math("MULTIPLY", z, z), -0.5), 0.0)
+
+    def splat_points(self, aux_per_gaussian: int, lifespans: bool = False):
         """A new point cloud with one point per Gaussian at its (deformed) position,
         carrying ``ms_color``/``ms_opacity``, plus the sampled ``ms_scale`` field.
+
+        With ``lifespans`` the stored ``ms_opacity`` is the mesh's times
+        :meth:`lifespan_window` (the tree needs the "Frame Start" / "Frame End" inputs).
 
         The points are made with the Points node and Sample Index instead of Mesh to
         Points: the rig's ~N vertex groups would otherwise be copied onto every point
@@ -102,8 +133,10 @@ class _Tree:
         out = pts.outputs["Points"]
         out = self.store(out, "ms_color", "FLOAT_COLOR",
                          self.sample(geo, _named_attr(self.N, "ms_color", "FLOAT_COLOR"), "FLOAT_COLOR", self.index))
-        out = self.store(out, "ms_opacity", "FLOAT",
-                         self.sample(geo, _named_attr(self.N, "ms_opacity", "FLOAT"), "FLOAT", self.index))
+        opacity = self.sample(geo, _named_attr(self.N, "ms_opacity", "FLOAT"), "FLOAT", self.index)
+        if lifespans:
+            opacity = self.math("MULTIPLY", opacity, self.lifespan_window(geo))
+        out = self.store(out, "ms_opacity", "FLOAT", opacity)
         return geo, pts, out, scale, count
 
     def finish(self, geo, material):
@@ -114,9 +147,20 @@ class _Tree:
         return self.tree
 
 
-def _points_tree(material):
-    t = _Tree(GN_TREE["POINTS"], inputs=(("Radius Scale", 1.0),))
-    _, pts, out, scale, _ = t.splat_points(0)
+#: The lifespan trees' inputs: the bundle's frame range (engine time 0 and 1).
+FRAME_INPUTS = ("Frame Start", "Frame End")
+
+
+def _frame_inputs(frame_range) -> tuple:
+    """Tree inputs for the frame range (none without lifespans)."""
+    if frame_range is None:
+        return ()
+    return tuple((name, float(v), None) for name, v in zip(FRAME_INPUTS, frame_range))
+
+
+def _points_tree(material, frame_range=None):
+    t = _Tree(GN_TREE["POINTS"], inputs=(("Radius Scale", 1.0),) + _frame_inputs(frame_range))
+    _, pts, out, scale, _ = t.splat_points(0, lifespans=frame_range is not None)
     mean = t.math("DOT_PRODUCT", scale, (1 / 3, 1 / 3, 1 / 3), kind="ShaderNodeVectorMath")
     t.link(t.math("MULTIPLY", mean, t.gin.outputs["Radius Scale"]), pts.inputs["Radius"])
     return t.finish(out, material)
@@ -127,9 +171,9 @@ def _points_tree(material):
 ICO_RADIUS, ICO_SUBDIVISIONS, CUTOFF_SIGMA = 3.3, 2, 3.0
 
 
-def _ellipsoid_tree(material, subdivisions: int = ICO_SUBDIVISIONS):
-    t = _Tree(GN_TREE["ELLIPSOIDS"])
-    geo, _, out, scale, count = t.splat_points(AUX_AXES)
+def _ellipsoid_tree(material, subdivisions: int = ICO_SUBDIVISIONS, frame_range=None):
+    t = _Tree(GN_TREE["ELLIPSOIDS"], inputs=_frame_inputs(frame_range))
+    geo, _, out, scale, count = t.splat_points(AUX_AXES, lifespans=frame_range is not None)
     axes = []
     first_aux = t.math("ADD", count, t.math("MULTIPLY", t.index, float(AUX_AXES)))  # G + AUX·i
     for k in range(AUX_AXES):  # the deformed local x and y axes define the rotation
@@ -210,16 +254,25 @@ def _material(name: str, ellipsoid: bool):
     return mat
 
 
-def add_preview_modifier(mesh_obj, preview: str = "POINTS"):
-    """(Re)create the Geometry Nodes preview modifier (after the Armature modifier)."""
+def add_preview_modifier(mesh_obj, preview: str = "POINTS", frame_range=None):
+    """(Re)create the Geometry Nodes preview modifier (after the Armature modifier).
+
+    ``frame_range``: the bundle's ``(frame_start, frame_end)`` (``scene.json`` ``time``),
+    required when the mesh has the ``ms_lifespan`` attribute (the opacity then follows the
+    frame) and unused otherwise.
+    """
     if preview not in PREVIEW_MODES:
         raise ValueError(f"preview must be one of {PREVIEW_MODES}, not {preview!r}")
+    if "ms_lifespan" not in mesh_obj.data.attributes:
+        frame_range = None
+    elif frame_range is None:
+        raise ValueError("a mesh with Gaussian lifespans needs the bundle's frame_range")
     old = mesh_obj.modifiers.get(GN_MODIFIER)
     if old is not None:
         mesh_obj.modifiers.remove(old)
     ell = preview == "ELLIPSOIDS"
     mat = _material("MotionSplatsEllipsoid" if ell else "MotionSplatsPoint", ell)
-    tree = _ellipsoid_tree(mat) if ell else _points_tree(mat)
+    tree = _ellipsoid_tree(mat, frame_range=frame_range) if ell else _points_tree(mat, frame_range)
     if mat.name not in [m.name for m in mesh_obj.data.materials if m]:
         mesh_obj.data.materials.append(mat)
     mod = mesh_obj.modifiers.new(GN_MODIFIER, "NODES")
