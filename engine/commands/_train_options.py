@@ -21,6 +21,9 @@ def add_clip_options(parser):
     parser.add_argument("--motion-init", choices=("auto", "tracks", "rest"),
                         help="starting node trajectories: splines fitted to lifted 2D tracks, or at rest (default "
                              "auto: tracks when the depth comes from --depth-model/--depth-path, else rest)")
+    parser.add_argument("--lifespan", choices=("auto", "on", "off"),
+                        help="moving Gaussians visible only around the frame they were seeded from (default auto: "
+                             "on when the camera does not translate, e.g. a tripod shot)")
     parser.add_argument("--max-frames", type=int, help="sub-sample the clip to at most this many frames")
     parser.add_argument("--holdout", type=int, metavar="N",
                         help="withhold every N-th training frame from training and score it (clips without a "
@@ -73,7 +76,7 @@ def config_from_args(args):
         TrainConfig.from_dict({**PRESETS.get(args.preset, {}), **overrides, "preset": args.preset}, args.config)
     options = {}
     for key in ("width", "steps", "num_nodes", "num_keys", "init", "motion", "motion_init", "seed", "device", "backend",
-                "holdout"):
+                "holdout", "lifespan"):
         value = getattr(args, key, None)
         if value is not None:
             options[key] = value

@@ -140,3 +140,17 @@ def test_bundle_refuses_broken_lifespans():
             B.NodeArrays.from_dict(broken)
     swaying = build_model(*(lambda d, t: (d, make_nodes(t)))(*make_scene()), _cfg(), torch.Generator().manual_seed(0))
     assert bundle_arrays(swaying)[0].gauss_lifespan is None  # bundles without lifespans stay as they were
+
+
+def test_the_command_line_sets_the_lifespan():
+    import argparse
+
+    from engine.commands._train_options import add_clip_options, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_clip_options(parser)
+    args = ["clip", "--out", "run"]
+    assert config_from_args(parser.parse_args(args + ["--lifespan", "off"])).lifespan == "off"
+    assert config_from_args(parser.parse_args(args)).lifespan == "auto"
+    with pytest.raises(SystemExit):
+        parser.parse_args(args + ["--lifespan", "sometimes"])
