@@ -76,7 +76,10 @@ def kept_on_objects(bundle_dir, scene_dir) -> dict:
     objects = sorted(names)
     cams, frame_ids = bundle_train_frames(bundle, scene_dir)
     with torch.no_grad():
-        opaque = (model.opacities().reshape(-1) > MIN_OPACITY).numpy()
+        # opaque at the reference (middle) frame; a Gaussian with a lifespan is scored by where
+        # its nodes carry it, also at frames where it is faded out
+        ref_time = float(cams[len(cams) // 2]["time"])
+        opaque = (model.opacities_at(ref_time).reshape(-1) > MIN_OPACITY).numpy()
         labels = np.full((len(cams), int(opaque.sum())), -1, np.int64)
         visible = np.zeros((len(cams), len(objects)), bool)
         for t, (c, fid) in enumerate(zip(cams, frame_ids)):  # loop over frames

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import torch
 
+from ..geometry.camera import camera_centers
 from .config import LIFESPAN_MODES
 
 #: camera centres within this fraction of the scene extent of each other: a camera that does not translate
@@ -38,8 +39,7 @@ def lifespan_window(t: float, t_center: torch.Tensor, lifespan: torch.Tensor) ->
 def camera_translates(w2c: torch.Tensor, extent: float) -> bool:
     """Whether the camera centres of ``w2c [F, 4, 4]`` move by more than
     :data:`FIXED_CAMERA_TOL` of the scene ``extent``."""
-    R, tr = w2c[:, :3, :3], w2c[:, :3, 3]
-    centres = -(R.transpose(1, 2) @ tr.unsqueeze(-1)).squeeze(-1)
+    centres = camera_centers(w2c)
     spread = (centres - centres.mean(0)).norm(dim=1).max()
     return bool(spread > FIXED_CAMERA_TOL * max(float(extent), 1e-12))
 
