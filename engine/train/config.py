@@ -107,7 +107,7 @@ class TrainConfig:
     dynamic_gaussians: int = 6000        # Gaussians seeded on moving pixels, spread over all training frames
     lifespan: str = "auto"               # moving Gaussians visible around their seed frame only (engine/train/
                                          # lifespan.py): on | off | auto (on when the cameras do not translate)
-    lifespan_frames: float = 1.3         # ... the lifespan's sigma in training-frame intervals
+    lifespan_frames: float = 1.0         # ... the lifespan's sigma in training-frame intervals (docs/benchmarks.md)
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     node_rotations: str = "tracks"       # initial node rotations: "tracks" (rigid rotation of each node's lifted

@@ -62,7 +62,7 @@ def test_fixed_camera_model_gives_moving_gaussians_their_seed_time():
     dyn, life = model.gauss_dyn, model.gauss_lifespan
     assert bool((life[dyn] > 0).all()) and bool((life[~dyn] == 0).all())
     gap = float(torch.diff(data.times[data.train_idx]).median())
-    torch.testing.assert_close(life[dyn], torch.full_like(life[dyn], 1.3 * gap))
+    torch.testing.assert_close(life[dyn], torch.full_like(life[dyn], _cfg().lifespan_frames * gap))
     train_times = set(np.round(data.times[data.train_idx].numpy(), 6).tolist())
     assert set(np.round(model.gauss_t_center[dyn].numpy(), 6).tolist()) <= train_times
     # the swaying camera of the same scene: no lifespans (auto), unless asked for
