@@ -154,3 +154,32 @@ def test_the_command_line_sets_the_lifespan():
     assert config_from_args(parser.parse_args(args)).lifespan == "auto"
     with pytest.raises(SystemExit):
         parser.parse_args(args + ["--lifespan", "sometimes"])
+
+
+def test_resume_keeps_the_lifespans(tmp_path):
+    """A run killed after a periodic checkpoint and resumed ends byte-identical to an
+    uninterrupted one, lifespans included (they ride in the model's state)."""
+    from engine.train.trainer import Trainer
+
+    data, truth = make_scene(frames=12, width=48, height=36, fixed_camera=True)
+    cfg = dict(steps=40, gaussians_per_frame=400, init_keyframes=4, num_nodes=25, dynamic_gaussians=300,
+               densify_from=10, densify_until=35, densify_every=10, checkpoint_every=20, warmup_static_steps=5)
+    Trainer(data, make_nodes(truth), preset_config("preview", **cfg), tmp_path / "full").run()
+    part = Trainer(data, make_nodes(truth), preset_config("preview", **cfg), tmp_path / "part")
+    original = part._loss
+
+    def killed_at_30(f):
+        if part.step == 30:
+            raise RuntimeError("killed")
+        return original(f)
+
+    part._loss = killed_at_30
+    with pytest.raises(RuntimeError, match="killed"):
+        part.run()
+    resumed = Trainer(data, make_nodes(truth), preset_config("preview", **cfg), tmp_path / "part", resume=True)
+    assert resumed.step == 20 and bool((resumed.model.gauss_lifespan > 0).any())
+    resumed.run()
+    full, again = B.read_nodes(tmp_path / "full" / B.NODES_FILE), B.read_nodes(tmp_path / "part" / B.NODES_FILE)
+    np.testing.assert_array_equal(full.gauss_t_center, again.gauss_t_center)
+    np.testing.assert_array_equal(full.gauss_lifespan, again.gauss_lifespan)
+    assert (tmp_path / "full" / B.GAUSSIANS_FILE).read_bytes() == (tmp_path / "part" / B.GAUSSIANS_FILE).read_bytes()
