@@ -108,6 +108,8 @@ class TrainConfig:
     lifespan: str = "auto"               # moving Gaussians visible around their seed frame only (engine/train/
                                          # lifespan.py): on | off | auto (on when the cameras do not translate)
     lifespan_frames: float = 1.0         # ... the lifespan's sigma in training-frame intervals (docs/benchmarks.md)
+    lifespan_seed_factor: float = 3.0    # ... and dynamic_gaussians times this many moving Gaussians seeded (each
+                                         # frame shows only its own few)
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     node_rotations: str = "tracks"       # initial node rotations: "tracks" (rigid rotation of each node's lifted
@@ -204,7 +206,7 @@ class TrainConfig:
                 bad(key, f"is {getattr(self, key)}, above the largest sensible value {limit}")
         for key in [f.name for f in dataclasses.fields(self) if f.name.startswith("lr_")] + [
                 "densify_grad_threshold", "percent_dense", "opacity_prune", "node_spawn_factor",
-                "max_nodes_factor", "node_prune_weight", "lifespan_frames"]:
+                "max_nodes_factor", "node_prune_weight", "lifespan_frames", "lifespan_seed_factor"]:
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
         if not (0 <= self.canonical_time <= 1 or self.canonical_time == -1):
@@ -311,7 +313,7 @@ def _loss_from_dict(data: Any, source: str | None) -> LossWeights:
 LIMITS: dict[str, int] = {"width": 8192, "steps": 10_000_000, "num_nodes": 200_000, "num_keys": 10_000,
                           "bind_k": 64, "gaussians_per_frame": 2_000_000, "init_keyframes": 1000,
                           "max_gaussians": 20_000_000, "max_frames": 100_000,
-                          "node_add_max": 100_000}
+                          "node_add_max": 100_000, "lifespan_seed_factor": 100}
 
 PRESETS: dict[str, dict[str, Any]] = {
     "preview": {},

@@ -11,6 +11,7 @@ eight keyframes.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -215,8 +216,13 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         canon = canonicalise(probe, pts, tms, None, cfg.bind_k, identity)
         g_dyn = None
     else:
+        life = resolve_lifespan(cfg.lifespan, cfg.lifespan_frames, data.times[data.train_idx],
+                                data.w2c[data.train_idx], data.extent)
         s_pts, s_cols, s_scl, _ = initial_gaussians(data, cfg, gen, static_only=True)
-        d_pts, d_cols, d_scl, d_tms = dynamic_gaussians(data, cfg, gen)
+        # with lifespans only the moving Gaussians of the frames around t show at t: seed more
+        seed_cfg = dataclasses.replace(cfg, dynamic_gaussians=int(round(
+            cfg.dynamic_gaussians * cfg.lifespan_seed_factor))) if life > 0 else cfg
+        d_pts, d_cols, d_scl, d_tms = dynamic_gaussians(data, seed_cfg, gen)
         d_canon = canonicalise(probe, d_pts, d_tms, torch.nonzero(node_dyn).squeeze(1), cfg.bind_k, identity)
         canon = torch.cat([s_pts, d_canon])  # static points are where they were seen
         cols, scl = torch.cat([s_cols, d_cols]), torch.cat([s_scl, d_scl])
@@ -231,8 +237,6 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
     if node_dyn is not None:
         model.node_dyn = node_dyn.clone()
         model.gauss_dyn = g_dyn
-        life = resolve_lifespan(cfg.lifespan, cfg.lifespan_frames, data.times[data.train_idx],
-                                data.w2c[data.train_idx], data.extent)
         if life > 0:  # each moving Gaussian lives around the frame it was seeded from
             model.gauss_t_center[len(s_pts):] = d_tms.reshape(-1).to(model.gauss_t_center)
             model.gauss_lifespan[len(s_pts):] = life

@@ -65,6 +65,10 @@ def test_fixed_camera_model_gives_moving_gaussians_their_seed_time():
     torch.testing.assert_close(life[dyn], torch.full_like(life[dyn], _cfg().lifespan_frames * gap))
     train_times = set(np.round(data.times[data.train_idx].numpy(), 6).tolist())
     assert set(np.round(model.gauss_t_center[dyn].numpy(), 6).tolist()) <= train_times
+    # each frame shows only its own moving Gaussians, so lifespan_seed_factor times as many are seeded
+    off = build_model(data, make_nodes(truth), _cfg(lifespan="off"), torch.Generator().manual_seed(0))
+    assert int(dyn.sum()) >= 0.9 * _cfg().lifespan_seed_factor * int(off.gauss_dyn.sum())
+    assert not bool((off.gauss_lifespan > 0).any())
     # the swaying camera of the same scene: no lifespans (auto), unless asked for
     data2, truth2 = make_scene()
     assert not bool((build_model(data2, make_nodes(truth2), _cfg(), torch.Generator().manual_seed(0))
