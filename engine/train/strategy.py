@@ -99,8 +99,9 @@ class GaussianDensifyStrategy:
         when its largest scale exceeds ``percent_dense`` of the scene extent. At most
         ``max_gaussians - G`` are added (the hottest first). A split draws its copy's offset
         from the Gaussian (``gen``) and shrinks both by 1.6; the copies are appended after
-        the kept rows and inherit ``gauss_dyn`` and the lifespan (:data:`GAUSSIAN_BUFFERS`). The statistics are not reset here (the
-        trainer does, after node densification).
+        the kept rows and inherit their source's per-Gaussian buffers (``gauss_dyn``, the
+        lifespan: :data:`GAUSSIAN_BUFFERS`). The statistics are not reset here (the trainer
+        does, after node densification).
         """
         cfg, m = self.cfg, model
         grads = self.grad_accum / self.grad_count.clamp_min(1)

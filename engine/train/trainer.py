@@ -386,13 +386,11 @@ class Trainer:
         """Train, evaluate on held-out frames, write the bundle; return a summary."""
         self.reporter.log(f"training {self.model.num_gaussians} Gaussians, {self.model.num_nodes} nodes, "
                           f"{self.cfg.steps} steps ({self.cfg.preset})")
-        living = self.model.gauss_lifespan > 0
-        if bool(living.any()):
-            self.reporter.log(f"moving Gaussians live around their own frame ({int(living.sum())} of them, lifespan "
-                              f"{self.cfg.lifespan_frames:g} frame intervals; lifespan {self.cfg.lifespan}: "
-                              "the camera does not translate)" if self.cfg.lifespan == "auto" else
-                              f"moving Gaussians live around their own frame ({int(living.sum())} of them, lifespan "
-                              f"{self.cfg.lifespan_frames:g} frame intervals)")
+        living = int((self.model.gauss_lifespan > 0).sum())
+        if living:
+            why = "; lifespan auto: the camera does not translate" if self.cfg.lifespan == "auto" else ""
+            self.reporter.log(f"moving Gaussians live around their own frame ({living} of them, lifespan "
+                              f"{self.cfg.lifespan_frames:g} frame intervals{why})")
         # the Numba kernels load (or, on a first run, compile) as their own progress stage,
         # not inside the first render below
         warm_kernels(self.reporter, self.device, self.cfg.backend)
