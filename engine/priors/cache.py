@@ -3,13 +3,21 @@
 Layout: ``<cache_dir>/priors-v{CACHE_VERSION}/<name>-<key>.npz``. A prior's key is a
 SHA-256 over (cache version, clip identity, the prior's own parameters, the keys of the
 priors it depends on). Changing a parameter therefore invalidates exactly that prior and
-its dependents: tokens and tracks depend on nothing; depth depends on tracks (anchors);
-the motion mask depends on depth. Files are written atomically, read with
-``allow_pickle=False``.
+its dependents: tokens and tracks depend on nothing; the first depth pass depends on tracks
+(anchors); the motion mask depends on it; the depth handed on depends on both. Files are
+written atomically, read with ``allow_pickle=False``.
 
-Order: tracks -> depth (anchored on triangulated static tracks; moving points fail the
-triangulation reprojection test; a *precomputed* mask is loaded first and also removes
-anchors in dynamic regions) -> dynamic mask (rigid-flow residual needs depth) -> tokens.
+Order: tracks -> first depth pass (``depth_pass1``: anchored on every triangulated track)
+-> dynamic mask (rigid-flow residual needs depth) -> depth (anchors on moving pixels
+dropped) -> tokens. Why two depth passes: a point on a moving object fails triangulation
+only when its motion is not explainable by a static point; a short track on a child
+walking toward a translating camera fits a static point a few units in front of the lens
+within the 2-px test, and in inverse depth one such anchor outweighs hundreds of static
+ones around it (bedroom.mp4: 63 of 232 anchors of the last frame sat on the boy, at
+1/300 of the room's depth, and pulled the whole frame's median depth from ~850 to 92).
+The motion mask is what tells those anchors apart, and it needs a depth first; the first
+pass is good enough for it (the rigid-flow residual is large on moving pixels whichever
+depth they carry). A *precomputed* mask is known before depth: one pass, masked.
 """
 
 from __future__ import annotations
@@ -31,7 +39,7 @@ from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
-ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth": 2, "dynamic": 6}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth_pass1": 3, "dynamic": 7, "depth": 3}
 
 
 @dataclass
@@ -57,6 +65,9 @@ class PriorConfig:
     # one depth per track) | 'track' (one depth per track from the prior alone); see
     # engine/priors/dynamic_depth.py
     moving_depth: str = "contact"
+    # weight-free depth: a moving pixel is no nearer than 1/ratio of the static surface
+    # behind it (engine.priors.depth.merge_moving_depth)
+    moving_depth_ratio: float = 4.0
     depth_model: str | None = None
     depth_path: str | None = None
     depth_width: int = 320
@@ -171,30 +182,35 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
         _save(cache, "tracks", k, **dataclasses.asdict(tracks))
     log(f"tracks: {tracks.xy.shape[0]} points")
 
-    # depth (depends on tracks unless precomputed)
+    # depth, first pass (depends on tracks unless precomputed): what the motion mask needs
     dp = {"backend": cfg.depth_backend, "model": _file_id(cfg.depth_model), "path": _file_id(cfg.depth_path),
           "w": cfg.depth_width, "out": cfg.depth_output}
+    dp2 = dict(dp, ratio=cfg.moving_depth_ratio)
     # a precomputed mask is known before depth: its dynamic regions give no anchors
     pre_mask = _pre.load_mask(cfg.mask_path, (F, H, W)) if cfg.mask_path else None
     up = () if cfg.depth_path else (keys["tracks"], _file_id(cfg.mask_path))
-    keys["depth"] = k = prior_key("depth", cid, dp, up)
-    z = _load(cache, "depth", k)
+    keys["depth_pass1"] = k = prior_key("depth_pass1", cid, dp, up)
+
+    def estimate(dynamic):
+        if cfg.depth_path:
+            d = _pre.load_depth(cfg.depth_path, (F, H, W))
+            return d, np.ones_like(d)
+        return _depth.estimate_depth(frames, K, w2c, cfg.depth_backend, cfg.depth_model, tracks=tracks,
+                                     dynamic=dynamic, max_width=cfg.depth_width, reporter=reporter,
+                                     output=cfg.depth_output)
+
+    z = _load(cache, "depth_pass1", k)
     if z is not None:
         depth, dconf = z["depth"], z["confidence"]
     else:
-        recomputed.append("depth")
-        if cfg.depth_path:
-            depth = _pre.load_depth(cfg.depth_path, (F, H, W)); dconf = np.ones_like(depth)
-        else:
-            depth, dconf = _depth.estimate_depth(frames, K, w2c, cfg.depth_backend, cfg.depth_model, tracks=tracks,
-                                                 dynamic=pre_mask, max_width=cfg.depth_width, reporter=reporter,
-                                                 output=cfg.depth_output)
-        _save(cache, "depth", k, depth=depth, confidence=dconf)
+        recomputed.append("depth_pass1")
+        depth, dconf = estimate(pre_mask)
+        _save(cache, "depth_pass1", k, depth=depth, confidence=dconf)
 
     # dynamic mask (motion backend depends on depth)
     mp = {"backend": cfg.mask_backend, "model": _file_id(cfg.mask_model), "path": _file_id(cfg.mask_path),
           "w": cfg.mask_width, "fg": cfg.foreground_classes, "flow": fid if cfg.mask_backend == "motion" else None}
-    up = (keys["depth"],) if (cfg.mask_backend == "motion" and not cfg.mask_path) else ()
+    up = (keys["depth_pass1"],) if (cfg.mask_backend == "motion" and not cfg.mask_path) else ()
     keys["dynamic"] = k = prior_key("dynamic", cid, mp, up)
     z = _load(cache, "dynamic", k)
     if z is not None:
@@ -207,6 +223,23 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             dyn = _motion.dynamic_mask(frames, K, w2c, depth, cfg.mask_backend, cfg.mask_model, cfg.mask_width,
                                        cfg.foreground_classes, reporter=reporter, source=source)
         _save(cache, "dynamic", k, dynamic=dyn)
+
+    # depth handed on: anchored on static tracks only (module docstring); a file or a mask
+    # known before the first pass already gave it
+    if not cfg.depth_path and pre_mask is None:
+        keys["depth"] = k = prior_key("depth", cid, dp2, (keys["depth_pass1"], keys["dynamic"]))
+        z = _load(cache, "depth", k)
+        if z is not None:
+            depth, dconf = z["depth"], z["confidence"]
+        else:
+            recomputed.append("depth")
+            static, dconf = estimate(dyn)
+            if cfg.depth_backend == "sparse":  # a depth model sees moving things itself
+                static = _depth.merge_moving_depth(depth, static, dyn, max_ratio=cfg.moving_depth_ratio)
+            depth = static
+            _save(cache, "depth", k, depth=depth, confidence=dconf)
+    else:
+        keys["depth"] = keys["depth_pass1"]
 
     # tokens
     tkp = {"backend": cfg.tokens_backend, "model": _file_id(cfg.tokens_model), "patch": cfg.patch_size}

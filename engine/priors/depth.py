@@ -73,8 +73,33 @@ def triangulate_tracks(xy, visible, K, w2c, max_reproj=2.0, min_angle_deg=0.5):
     return X.astype(np.float32), ok
 
 
-def anchors_from_tracks(tracks, K, w2c, dynamic=None, shape=None, min_anchors=20, max_reproj=2.0):
-    """Per-frame anchors ``[A,3]`` (u, v, depth) from triangulated static tracks."""
+#: Tracks seen (as static) in at least this many frames are trusted as depth anchors as
+#: they are; shorter ones only within the depth range the long ones establish
+#: (:func:`anchors_from_tracks`). Two or three views leave one or three equations to reject
+#: a point whose image motion is not parallax, and a moving point often passes: on
+#: bedroom.mp4 97 % of the triangulated two-view tracks (83 % of three-view, 65 % of four-
+#: and five-view) came out under 0.3x the scene's median depth -- down to 1/700 of it --
+#: against 4 % of those seen six times or more (docs/benchmarks.md).
+ANCHOR_LONG_VIEWS = 6
+#: A short track's point may be no nearer than this fraction of the 5th percentile of the
+#: long tracks' depths (their own near range, with some room for a nearer surface).
+SHORT_TRACK_NEAR_FRACTION = 0.5
+
+
+def anchors_from_tracks(tracks, K, w2c, dynamic=None, shape=None, min_anchors=20, max_reproj=2.0,
+                        long_views=ANCHOR_LONG_VIEWS, near_fraction=SHORT_TRACK_NEAR_FRACTION):
+    """Per-frame anchors ``[A,3]`` (u, v, depth) from triangulated static tracks.
+
+    Tracks seen in ``long_views`` frames or more anchor as triangulated; a shorter track
+    anchors only where its depth in every frame it is seen is at least ``near_fraction``
+    times the 5th percentile of the long tracks' depths (no long tracks: no bound). Why: a
+    short track on a moving object can pass the reprojection test with its motion read as
+    parallax, which puts it just in front of the lens, and in inverse depth one such anchor
+    outweighs hundreds of static ones around it (bedroom.mp4's last frames came out at
+    1/90 of the room's depth). Short tracks are not dropped outright: on slowly moving
+    objects they triangulate near their true depth, the only depth the weight-free prior
+    has for them (generated large-motion scenes: masked held-out -0.6 dB without them).
+    """
     xy, vis = tracks.xy.astype(np.float64), tracks.visible.copy()
     P, F = vis.shape
     if dynamic is not None:
@@ -82,6 +107,12 @@ def anchors_from_tracks(tracks, K, w2c, dynamic=None, shape=None, min_anchors=20
         u = np.clip(xy[..., 0].astype(np.int64), 0, W - 1); v = np.clip(xy[..., 1].astype(np.int64), 0, H - 1)
         vis &= dynamic[np.arange(F)[None], v, u] <= 0.5
     X, ok = triangulate_tracks(xy, vis, K.astype(np.float64), w2c.astype(np.float64), max_reproj)
+    long_ = ok & (vis.sum(1) >= long_views)
+    if long_.any() and not long_.all():
+        z = np.einsum("fj,pj->pf", w2c[:, 2, :3], X.astype(np.float64)) + w2c[None, :, 2, 3]  # [P, F] camera z
+        bound = near_fraction * float(np.percentile(z[long_[:, None] & vis], 5))
+        nearest = np.where(vis, z, np.inf).min(1)
+        ok &= long_ | (nearest >= bound)
     Xs = X[ok].astype(np.float64)
     out = []
     for f in range(F):
@@ -173,6 +204,26 @@ def _ellipse(d):
     import cv2
 
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (max(3, int(d) | 1),) * 2)
+
+
+def merge_moving_depth(first, static, dynamic, threshold=0.5, max_ratio=4.0):
+    """Depth of the second (static-anchored) pass with the moving pixels of the first pass,
+    bounded by occlusion order -> float32 [F,H,W].
+
+    ``first``: the depth anchored on every triangulated track, moving ones included;
+    ``static``: the same with anchors on moving pixels dropped; ``dynamic [F,H,W]``: the motion
+    mask. A track on a slowly moving object often triangulates close to its true depth (the
+    generated small-motion scenes: moving-pixel median error 7 % with it, 105 % without: the
+    background's depth); one whose motion mimics parallax lands anywhere in front of the lens
+    (bedroom.mp4: 1/300 of the room's depth). So moving pixels keep the first pass's value
+    only inside what occlusion order allows: no farther than the static surface behind them
+    (``static`` there) and no nearer than ``1 / max_ratio`` of it. Static pixels take
+    ``static`` -- the first pass's moving anchors no longer leak into the scene around them.
+    """
+    first = np.asarray(first, np.float32); static = np.asarray(static, np.float32)
+    moving = np.asarray(dynamic) >= threshold
+    bounded = np.clip(first, static / float(max_ratio), static)
+    return np.where(moving & (first > 0) & np.isfinite(first), bounded, static).astype(np.float32)
 
 
 def support_fill(depth, moving, q=5.0, gap=2, ring=5, min_px=20):

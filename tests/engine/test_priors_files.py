@@ -104,23 +104,25 @@ def test_cache_invalidates_only_dependents(clip, tmp_path, monkeypatch):
             pass
 
     p1 = compute_priors(frames, K, w2c, cfg, cache_dir=tmp_path, reporter=Rep())
-    assert calls == {"tracks": 1, "depth": 1, "dynamic": 1, "tokens": 1}
+    # depth runs twice: a first pass for the motion mask, then without the anchors it marks
+    assert calls == {"tracks": 1, "depth": 2, "dynamic": 1, "tokens": 1}
     assert {"tracks", "depth", "dynamic_mask", "priors"} <= set(events)
     p2 = compute_priors(frames, K, w2c, cfg, cache_dir=tmp_path)
-    assert p2.recomputed == [] and sum(calls.values()) == 4
+    assert p2.recomputed == [] and sum(calls.values()) == 5
     assert np.array_equal(p1.depth, p2.depth) and np.array_equal(p1.tracks.xy, p2.tracks.xy)
     assert np.array_equal(p1.tokens.tokens, p2.tokens.tokens)
     compute_priors(frames, K, w2c, dataclasses.replace(cfg, patch_size=8), cache_dir=tmp_path)
-    assert calls == {"tracks": 1, "depth": 1, "dynamic": 1, "tokens": 2}
+    assert calls == {"tracks": 1, "depth": 2, "dynamic": 1, "tokens": 2}
     compute_priors(frames, K, w2c, dataclasses.replace(cfg, mask_width=160), cache_dir=tmp_path)
-    assert calls == {"tracks": 1, "depth": 1, "dynamic": 2, "tokens": 2}
+    # the mask changed: so does the second depth pass (its anchors), not the first
+    assert calls == {"tracks": 1, "depth": 3, "dynamic": 2, "tokens": 2}
     p = compute_priors(frames, K, w2c, dataclasses.replace(cfg, num_points=200), cache_dir=tmp_path)
-    assert calls == {"tracks": 2, "depth": 2, "dynamic": 3, "tokens": 2}
-    assert sorted(p.recomputed) == ["depth", "dynamic", "tracks"]
+    assert calls == {"tracks": 2, "depth": 5, "dynamic": 3, "tokens": 2}
+    assert sorted(p.recomputed) == ["depth", "depth_pass1", "dynamic", "tracks"]
     # another clip (different cameras) never reuses entries
     w2c2 = w2c.copy(); w2c2[:, 1, 3] += 0.01
     compute_priors(frames, K, w2c2, cfg, cache_dir=tmp_path)
-    assert calls == {"tracks": 3, "depth": 3, "dynamic": 4, "tokens": 3}
+    assert calls == {"tracks": 3, "depth": 7, "dynamic": 4, "tokens": 3}
     files = list((tmp_path / f"priors-v{cache_mod.CACHE_VERSION}").glob("*.npz"))
     assert files and all(not f.name.startswith(".") for f in files)
 
