@@ -13,8 +13,8 @@ dropped) -> tokens. Why two depth passes: a point on a moving object fails trian
 only when its motion is not explainable by a static point; a short track on a child
 walking toward a translating camera fits a static point a few units in front of the lens
 within the 2-px test, and in inverse depth one such anchor outweighs hundreds of static
-ones around it (bedroom.mp4: 63 of 232 anchors of the last frame sat on the boy, at
-1/300 of the room's depth, and pulled the whole frame's median depth from ~850 to 92).
+ones around it (bedroom.mp4: 83 of the last frame's 295 anchors sat under 0.3x the room's
+median depth, down to 1/900 of it, and pulled the whole frame's median depth from ~850 to 92).
 The motion mask is what tells those anchors apart, and it needs a depth first; the first
 pass is good enough for it (the rigid-flow residual is large on moving pixels whichever
 depth they carry). A *precomputed* mask is known before depth: one pass, masked.

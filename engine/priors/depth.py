@@ -78,7 +78,7 @@ def triangulate_tracks(xy, visible, K, w2c, max_reproj=2.0, min_angle_deg=0.5):
 #: (:func:`anchors_from_tracks`). Two or three views leave one or three equations to reject
 #: a point whose image motion is not parallax, and a moving point often passes: on
 #: bedroom.mp4 97 % of the triangulated two-view tracks (83 % of three-view, 65 % of four-
-#: and five-view) came out under 0.3x the scene's median depth -- down to 1/700 of it --
+#: and five-view) came out under 0.3x the scene's median depth -- down to 1/900 of it --
 #: against 4 % of those seen six times or more (docs/benchmarks.md).
 ANCHOR_LONG_VIEWS = 6
 #: A short track's point may be no nearer than this fraction of the 5th percentile of the
@@ -96,7 +96,7 @@ def anchors_from_tracks(tracks, K, w2c, dynamic=None, shape=None, min_anchors=20
     short track on a moving object can pass the reprojection test with its motion read as
     parallax, which puts it just in front of the lens, and in inverse depth one such anchor
     outweighs hundreds of static ones around it (bedroom.mp4's last frames came out at
-    1/90 of the room's depth). Short tracks are not dropped outright: on slowly moving
+    1/9 of the room's depth). Short tracks are not dropped outright: on slowly moving
     objects they triangulate near their true depth, the only depth the weight-free prior
     has for them (generated large-motion scenes: masked held-out -0.6 dB without them).
     """
@@ -215,7 +215,7 @@ def merge_moving_depth(first, static, dynamic, threshold=0.5, max_ratio=4.0):
     mask. A track on a slowly moving object often triangulates close to its true depth (the
     generated small-motion scenes: moving-pixel median error 7 % with it, 105 % without: the
     background's depth); one whose motion mimics parallax lands anywhere in front of the lens
-    (bedroom.mp4: 1/300 of the room's depth). So moving pixels keep the first pass's value
+    (bedroom.mp4: down to 1/900 of the room's depth). So moving pixels keep the first pass's value
     only inside what occlusion order allows: no farther than the static surface behind them
     (``static`` there) and no nearer than ``1 / max_ratio`` of it. Static pixels take
     ``static`` -- the first pass's moving anchors no longer leak into the scene around them.
