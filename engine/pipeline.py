@@ -37,6 +37,8 @@ class PreparedClip:
     clip_index : (F,) index of each frame in the source clip (for evaluation against it).
     camera_solve : scene.json ``camera_solve`` record when the engine solved the cameras
         (:func:`engine.io.solve_select.summary`: model, why, quality), else None.
+    held_out_cameras : the clip has views of its own it does not train on (its ``val`` split;
+        frames withheld by ``--holdout`` do not count: they lie on the training camera's path).
     """
 
     frames: np.ndarray
@@ -52,6 +54,7 @@ class PreparedClip:
     source: str
     clip_index: np.ndarray | None = None
     camera_solve: dict | None = None
+    held_out_cameras: bool = True
 
 
 def load_frames_at_width(clip, width: int, reporter: Reporter | None = None, max_frames: int = 0):
@@ -106,6 +109,7 @@ def training_data(prep: PreparedClip, device="cpu") -> TrainingData:
         tracks_vis=None if tracks is None else torch.as_tensor(tracks.visible, dtype=torch.bool, device=device),
         extent=prep.extent, frame_numbers=torch.as_tensor(prep.frame_numbers), fps=prep.fps,
         clip_index=None if prep.clip_index is None else torch.as_tensor(prep.clip_index),
+        held_out_cameras=prep.held_out_cameras,
     ).validate()
 
 
@@ -160,6 +164,7 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     pos = {int(i): j for j, i in enumerate(idx)}
     train = np.array(sorted(pos[i] for i in clip.split.get("train", range(clip.num_frames)) if i in pos))
     val = np.array(sorted(pos[i] for i in clip.split.get("val", []) if i in pos), dtype=np.int64)
+    held_out_cameras = len(val) > 0  # before --holdout adds frames of the training camera's own path
     if cfg.holdout > 1:
         train, withheld = holdout_split(train, clip.times[idx], cfg.holdout)
         val = np.array(sorted(set(val.tolist()) | set(withheld.tolist())), dtype=np.int64)
@@ -209,7 +214,8 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
                         frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
                         extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""),
-                        clip_index=np.asarray(idx, dtype=np.int64), camera_solve=_camera_solve_record(clip))
+                        clip_index=np.asarray(idx, dtype=np.int64), camera_solve=_camera_solve_record(clip),
+                        held_out_cameras=held_out_cameras)
 
 
 def _camera_solve_record(clip) -> dict | None:

@@ -106,7 +106,8 @@ class TrainConfig:
     dynamic_threshold: float = 0.5       # dynamic prior at or above this = moving (nodes, Gaussians, tracks)
     dynamic_gaussians: int = 6000        # Gaussians seeded on moving pixels, spread over all training frames
     lifespan: str = "auto"               # moving Gaussians visible around their seed frame only (engine/train/
-                                         # lifespan.py): on | off | auto (on when the cameras do not translate)
+                                         # lifespan.py): on | off | auto (on unless the camera translates and the
+                                         # clip has held-out cameras of its own)
     lifespan_frames: float = 1.0         # ... the lifespan's sigma in training-frame intervals (docs/benchmarks.md)
     lifespan_seed_factor: float = 3.0    # ... and dynamic_gaussians times this many moving Gaussians seeded (each
                                          # frame shows only its own few)

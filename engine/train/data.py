@@ -25,6 +25,11 @@ class TrainingData:
     extent : scene extent (radius of the camera/point cloud bounds) in scene units.
     frame_numbers : (F,) Blender/scene frame number of each frame (for the bundle).
     clip_index : (F,) index of each frame in its source clip (evaluation reloads it).
+    held_out_cameras : whether the clip comes with cameras it does not train on (a dataset's
+        held-out views, e.g. a Nerfies vrig's second camera): there views off the training
+        camera's path matter, and with a moving camera ``lifespan auto`` stays off
+        (:func:`engine.train.lifespan.resolve_lifespan`). True unless the caller knows better:
+        the pipeline sets False for a clip without such cameras (a video, an image folder).
     """
 
     images: torch.Tensor
@@ -41,6 +46,7 @@ class TrainingData:
     frame_numbers: torch.Tensor | None = None
     fps: float = 24.0
     clip_index: torch.Tensor | None = None
+    held_out_cameras: bool = True
 
     @property
     def height(self) -> int:

@@ -217,7 +217,7 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         g_dyn = None
     else:
         life = resolve_lifespan(cfg.lifespan, cfg.lifespan_frames, data.times[data.train_idx],
-                                data.w2c[data.train_idx], data.extent)
+                                data.w2c[data.train_idx], data.extent, data.held_out_cameras)
         s_pts, s_cols, s_scl, _ = initial_gaussians(data, cfg, gen, static_only=True)
         # with lifespans only the moving Gaussians of the frames around t show at t: seed more
         seed_cfg = dataclasses.replace(cfg, dynamic_gaussians=int(round(

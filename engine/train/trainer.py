@@ -31,6 +31,7 @@ from . import losses as L
 from .config import TrainConfig
 from .data import TrainingData
 from .export import bundle_arrays, bundle_cameras
+from .lifespan import camera_translates
 from .objective import Objective
 from .param_edit import make_optimizer  # noqa: F401  (re-exported)
 from .phases import no_phase
@@ -388,7 +389,12 @@ class Trainer:
                           f"{self.cfg.steps} steps ({self.cfg.preset})")
         living = int((self.model.gauss_lifespan > 0).sum())
         if living:
-            why = "; lifespan auto: the camera does not translate" if self.cfg.lifespan == "auto" else ""
+            why = ""
+            if self.cfg.lifespan == "auto":
+                why = ("; lifespan auto: the camera does not translate"
+                       if not camera_translates(self.data.w2c[self.data.train_idx], self.data.extent)
+                       else "; lifespan auto: a moving camera with no held-out cameras (--lifespan off keeps "
+                            "views away from the shot's path better)")
             self.reporter.log(f"moving Gaussians live around their own frame ({living} of them, lifespan "
                               f"{self.cfg.lifespan_frames:g} frame intervals{why})")
         # the Numba kernels load (or, on a first run, compile) as their own progress stage,

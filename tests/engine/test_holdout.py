@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -70,3 +71,20 @@ def test_video_clip_trains_with_holdout_and_evaluates_both_splits(tmp_path):
                             capture_output=True, text=True, timeout=300)
         assert ev.returncode == 0, ev.stderr[-2000:]
         assert json.loads(ev.stdout)["mean"]["frames"] == (12 if split == "train" else 4)
+
+
+def test_prepare_tells_held_out_cameras_from_withheld_frames(tmp_path):
+    """``lifespan auto`` keeps lifespans off for a moving camera only when the clip has cameras
+    of its own it does not train on; frames withheld by ``--holdout`` lie on the training
+    camera's path and do not count."""
+    from engine.pipeline import open_clip, prepare, training_data
+    from engine.train.config import preset_config
+
+    clip = open_clip(_video(tmp_path / "clip.avi", frames=8))
+    cfg = preset_config("preview", width=48, holdout=4)
+    plain = prepare(clip, cfg, cache_dir=tmp_path / "cache")
+    assert len(plain.val_idx) == 2 and plain.held_out_cameras is False
+    assert training_data(plain).held_out_cameras is False
+    clip.split = {"train": [0, 1, 2, 3, 4, 5], "val": [6, 7]}  # a dataset's own held-out views
+    split = prepare(clip, dataclasses.replace(cfg, holdout=0), cache_dir=tmp_path / "cache2")
+    assert split.held_out_cameras is True and training_data(split).held_out_cameras is True

@@ -38,7 +38,7 @@ def test_window_is_a_gaussian_in_time_and_one_without_a_lifespan():
     assert lifespan_window(0.5, tc, life)[0] == 1.0
 
 
-def test_auto_gives_lifespans_only_to_a_camera_that_does_not_translate():
+def test_auto_gives_lifespans_unless_a_moving_camera_has_held_out_cameras():
     times = torch.linspace(0, 1, 11)
     eye = torch.eye(4).expand(11, 4, 4).clone()
     turning = eye.clone()  # a camera that only rotates about its centre: still no parallax
@@ -49,7 +49,11 @@ def test_auto_gives_lifespans_only_to_a_camera_that_does_not_translate():
     assert not camera_translates(eye, 2.0) and not camera_translates(turning, 2.0) and camera_translates(moving, 2.0)
     assert resolve_lifespan("auto", 1.5, times, eye, 2.0) == pytest.approx(0.15)  # 1.5 frame gaps of 0.1
     assert resolve_lifespan("auto", 1.5, times, turning, 2.0) == pytest.approx(0.15)
-    assert resolve_lifespan("auto", 1.5, times, moving, 2.0) == 0.0
+    assert resolve_lifespan("auto", 1.5, times, moving, 2.0) == 0.0  # held-out cameras by default
+    assert resolve_lifespan("auto", 1.5, times, moving, 2.0, held_out_cameras=True) == 0.0
+    # a plain video: renders follow the shot, so its moving Gaussians live around their frame
+    assert resolve_lifespan("auto", 1.5, times, moving, 2.0, held_out_cameras=False) == pytest.approx(0.15)
+    assert resolve_lifespan("off", 1.5, times, moving, 2.0, held_out_cameras=False) == 0.0
     assert resolve_lifespan("on", 1.5, times, moving, 2.0) == pytest.approx(0.15)
     assert resolve_lifespan("off", 1.5, times, eye, 2.0) == 0.0
     with pytest.raises(ValueError):
