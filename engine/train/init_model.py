@@ -25,7 +25,7 @@ from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
 from ..geometry.quaternion import quat_conj, quat_identity, quat_mul, quat_normalize
 from .config import TrainConfig
 from .data import TrainingData
-from .lifespan import resolve_lifespan
+from .lifespan import lifespan_seed_count, resolve_lifespan
 from .model import DynamicScene
 
 
@@ -220,8 +220,7 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
                                 data.w2c[data.train_idx], data.extent, data.held_out_cameras)
         s_pts, s_cols, s_scl, _ = initial_gaussians(data, cfg, gen, static_only=True)
         # with lifespans only the moving Gaussians of the frames around t show at t: seed more
-        seed_cfg = dataclasses.replace(cfg, dynamic_gaussians=int(round(
-            cfg.dynamic_gaussians * cfg.lifespan_seed_factor))) if life > 0 else cfg
+        seed_cfg = dataclasses.replace(cfg, dynamic_gaussians=lifespan_seed_count(cfg)) if life > 0 else cfg
         d_pts, d_cols, d_scl, d_tms = dynamic_gaussians(data, seed_cfg, gen)
         d_canon = canonicalise(probe, d_pts, d_tms, torch.nonzero(node_dyn).squeeze(1), cfg.bind_k, identity)
         canon = torch.cat([s_pts, d_canon])  # static points are where they were seen

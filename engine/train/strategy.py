@@ -20,6 +20,7 @@ from ..geometry.quaternion import quat_apply, quat_identity, quat_normalize, qua
 from .config import TrainConfig
 from .data import TrainingData
 from .init_model import trajectory_fg_score
+from .lifespan import gaussian_budget
 from .model import DynamicScene
 from .param_edit import GAUSSIAN_BUFFERS, GAUSSIAN_PARAMS, NODE_PARAMS, edit_rows
 from .split import graph_within_class
@@ -97,7 +98,8 @@ class GaussianDensifyStrategy:
 
         A Gaussian is hot when its mean gradient reaches ``densify_grad_threshold`` and big
         when its largest scale exceeds ``percent_dense`` of the scene extent. At most
-        ``max_gaussians - G`` are added (the hottest first). A split draws its copy's offset
+        ``budget - G`` are added (the hottest first), the budget being ``max_gaussians``
+        plus the extra moving seeds of a run with lifespans (:func:`~engine.train.lifespan.gaussian_budget`). A split draws its copy's offset
         from the Gaussian (``gen``) and shrinks both by 1.6; the copies are appended after
         the kept rows and inherit their source's per-Gaussian buffers (``gauss_dyn``, the
         lifespan: :data:`GAUSSIAN_BUFFERS`). The statistics are not reset here (the trainer
@@ -108,7 +110,7 @@ class GaussianDensifyStrategy:
         scales = m.scales().max(dim=1).values
         big = scales > cfg.percent_dense * m.extent
         hot = grads >= cfg.densify_grad_threshold
-        room = max(cfg.max_gaussians - m.num_gaussians, 0)
+        room = max(gaussian_budget(cfg, m) - m.num_gaussians, 0)
         clone = torch.nonzero(hot & ~big).squeeze(1)
         split = torch.nonzero(hot & big).squeeze(1)
         # respect the budget: keep the hottest candidates
