@@ -98,12 +98,12 @@ class GaussianDensifyStrategy:
 
         A Gaussian is hot when its mean gradient reaches ``densify_grad_threshold`` and big
         when its largest scale exceeds ``percent_dense`` of the scene extent. At most
-        ``budget - G`` are added (the hottest first), the budget being ``max_gaussians``
-        plus the extra moving seeds of a run with lifespans (:func:`~engine.train.lifespan.gaussian_budget`). A split draws its copy's offset
-        from the Gaussian (``gen``) and shrinks both by 1.6; the copies are appended after
-        the kept rows and inherit their source's per-Gaussian buffers (``gauss_dyn``, the
-        lifespan: :data:`GAUSSIAN_BUFFERS`). The statistics are not reset here (the trainer
-        does, after node densification).
+        ``budget - G`` are added (the hottest first): ``max_gaussians`` plus the extra moving
+        seeds of a run with lifespans (:func:`~engine.train.lifespan.gaussian_budget`). A split
+        draws its copy's offset from the Gaussian (``gen``) and shrinks both by 1.6; the copies
+        are appended after the kept rows and inherit their source's per-Gaussian buffers
+        (``gauss_dyn``, the lifespan: :data:`GAUSSIAN_BUFFERS`). The statistics are not reset
+        here (the trainer does, after node densification).
         """
         cfg, m = self.cfg, model
         grads = self.grad_accum / self.grad_count.clamp_min(1)
