@@ -109,7 +109,7 @@ class TrainConfig:
                                          # lifespan.py): on | off | auto (on unless the camera translates and the
                                          # clip has held-out cameras of its own)
     lifespan_frames: float = 1.0         # ... the lifespan's sigma in training-frame intervals (docs/benchmarks.md)
-    lifespan_seed_factor: float = 3.0    # ... and dynamic_gaussians times this many moving Gaussians seeded (each
+    lifespan_seed_factor: float = 4.0    # ... and dynamic_gaussians times this many moving Gaussians seeded (each
                                          # frame shows only its own few)
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4

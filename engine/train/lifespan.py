@@ -60,7 +60,8 @@ def gaussian_budget(cfg, model) -> int:
     model's Gaussians have lifespans. Why: the extra seeds are per-frame capacity, not
     refinement, and without the raise they filled the cap before the first densification
     (cups.mp4: 32.6k seeds against 30k, nothing densified; with the headroom a run without
-    lifespans has, training frames +5.69 -> +5.90 dB over 3 seeds, docs/benchmarks.md)."""
+    lifespans has, training frames +5.69 -> +5.90 dB over 3 seeds at 3x the seeds,
+    docs/benchmarks.md)."""
     extra = lifespan_seed_count(cfg) - cfg.dynamic_gaussians if bool((model.gauss_lifespan > 0).any()) else 0
     return int(cfg.max_gaussians + max(extra, 0))
 
