@@ -408,6 +408,7 @@ def _stage_timer(times: dict):
     from ..priors import cache as C
 
     targets = [(C._tracks, "track_points", "tracks"), (C._depth, "estimate_depth", "depth"),
+               (C._depth, "model_predictions", "depth"),  # a depth model runs once, outside both passes
                (C._motion, "dynamic_mask", "dynamic"), (C._tokens, "extract_tokens", "tokens")]
     patches = []
     for mod, name, key in targets:

@@ -17,7 +17,8 @@ ones around it (bedroom.mp4: 83 of the last frame's 295 anchors sat under 0.3x t
 median depth, down to 1/900 of it, and pulled the whole frame's median depth from ~850 to 92).
 The motion mask is what tells those anchors apart, and it needs a depth first; the first
 pass is good enough for it (the rigid-flow residual is large on moving pixels whichever
-depth they carry). A *precomputed* mask is known before depth: one pass, masked.
+depth they carry). A depth model runs once; each pass only aligns its output to that pass's
+anchors. A *precomputed* mask is known before depth: one pass, masked.
 """
 
 from __future__ import annotations
@@ -191,21 +192,29 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
     up = () if cfg.depth_path else (keys["tracks"], _file_id(cfg.mask_path))
     keys["depth_pass1"] = k = prior_key("depth_pass1", cid, dp, up)
 
+    model_out = []  # a depth model's raw output: run once, aligned to each pass's anchors
+
     def estimate(dynamic):
         if cfg.depth_path:
             d = _pre.load_depth(cfg.depth_path, (F, H, W))
             return d, np.ones_like(d)
+        if cfg.depth_backend == "onnx" and not model_out:
+            model_out.append(_depth.model_predictions(frames, cfg.depth_model, cfg.depth_width, cfg.depth_output,
+                                                      reporter))
         return _depth.estimate_depth(frames, K, w2c, cfg.depth_backend, cfg.depth_model, tracks=tracks,
                                      dynamic=dynamic, max_width=cfg.depth_width, reporter=reporter,
-                                     output=cfg.depth_output)
+                                     output=cfg.depth_output, predictions=model_out[0] if model_out else None)
 
-    z = _load(cache, "depth_pass1", k)
-    if z is not None:
-        depth, dconf = z["depth"], z["confidence"]
-    else:
-        recomputed.append("depth_pass1")
-        depth, dconf = estimate(pre_mask)
-        _save(cache, "depth_pass1", k, depth=depth, confidence=dconf)
+    def cached_depth(name, key, compute):
+        z = _load(cache, name, key)
+        if z is not None:
+            return z["depth"], z["confidence"]
+        recomputed.append(name)
+        d, c = compute()
+        _save(cache, name, key, depth=d, confidence=c)
+        return d, c
+
+    depth, dconf = cached_depth("depth_pass1", k, lambda: estimate(pre_mask))
 
     # dynamic mask (motion backend depends on depth)
     mp = {"backend": cfg.mask_backend, "model": _file_id(cfg.mask_model), "path": _file_id(cfg.mask_path),
@@ -228,16 +237,14 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
     # known before the first pass already gave it
     if not cfg.depth_path and pre_mask is None:
         keys["depth"] = k = prior_key("depth", cid, dp2, (keys["depth_pass1"], keys["dynamic"]))
-        z = _load(cache, "depth", k)
-        if z is not None:
-            depth, dconf = z["depth"], z["confidence"]
-        else:
-            recomputed.append("depth")
-            static, dconf = estimate(dyn)
+
+        def second_pass(first=depth):
+            static, conf = estimate(dyn)
             if cfg.depth_backend == "sparse":  # a depth model sees moving things itself
-                static = _depth.merge_moving_depth(depth, static, dyn, max_ratio=cfg.moving_depth_ratio)
-            depth = static
-            _save(cache, "depth", k, depth=depth, confidence=dconf)
+                static = _depth.merge_moving_depth(first, static, dyn, max_ratio=cfg.moving_depth_ratio)
+            return static, conf
+
+        depth, dconf = cached_depth("depth", k, second_pass)
     else:
         keys["depth"] = keys["depth_pass1"]
 

@@ -278,7 +278,8 @@ def robust_affine(pred, target, iters=10):
 
 
 def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=None, dynamic=None, tracks=None,
-                   max_width=320, min_anchors=20, reporter=None, moving_fill="surround", output=None):
+                   max_width=320, min_anchors=20, reporter=None, moving_fill="surround", output=None,
+                   predictions=None):
     """Dense metric depth for every frame.
 
     Parameters
@@ -292,6 +293,8 @@ def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=No
         (see the module docstring and :func:`support_fill`)
     output : 'inverse' | 'depth' | None, onnx backend: what the model predicts (None: the
         sidecar's ``output``, else 'inverse')
+    predictions : ``(pred [F,H,W], kind)`` from :func:`model_predictions`, onnx backend: align
+        these instead of running the model again (the second depth pass of compute_priors)
 
     Returns
     -------
@@ -330,15 +333,20 @@ def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=No
         return depth, conf
     if backend != "onnx":
         raise InputError(f"unknown depth backend {backend!r}.", fix="Use 'sparse' or 'onnx'.")
-    return _onnx_depth(frames, anchors, median, model_path, max_width, output, reporter)
+    if predictions is None:
+        predictions = model_predictions(frames, model_path, max_width, output, reporter)
+    elif reporter is not None:
+        reporter.progress("depth", F, F)
+    return _align_predictions(*predictions, anchors, median)
 
 
-def _onnx_depth(frames, anchors, median, model_path, max_width, output, reporter):
-    """ONNX backend of :func:`estimate_depth` -> (depth [F,H,W], confidence [F,H,W])."""
+def model_predictions(frames, model_path, max_width=320, output=None, reporter=None):
+    """Run an ONNX depth model on every frame -> ``(pred float32 [F,H,W], kind)``: the raw output
+    resized to the frames, and ``kind`` 'inverse' (larger = nearer) or 'depth' (larger = farther)
+    from ``output`` or the model's sidecar."""
     import cv2
 
     F, H, W, _ = frames.shape
-    depth = np.empty((F, H, W), np.float32); conf = np.zeros((F, H, W), np.float32)
     sess = onnx_util.load_session(model_path)
     side = onnx_util.read_sidecar(model_path)
     name, layout, size, fixed = onnx_util.image_input_spec(sess, side, (384, 384))
@@ -348,26 +356,36 @@ def _onnx_depth(frames, anchors, median, model_path, max_width, output, reporter
     if kind not in ("inverse", "depth"):
         raise InputError(f"unknown depth model output {kind!r}.", model_path,
                          "Use 'inverse' (larger = nearer) or 'depth' (larger = farther).")
+    pred = np.empty((F, H, W), np.float32)
     for f in range(F):
         x = onnx_util.prepare_images(frames[f:f + 1], size, layout, side.get("mean", onnx_util.IMAGENET_MEAN),
                                      side.get("std", onnx_util.IMAGENET_STD))
-        pred = np.asarray(sess.run(None, {name: x})[0], np.float32).reshape(size)
-        pred = cv2.resize(pred, (W, H), interpolation=cv2.INTER_LINEAR)
+        out = np.asarray(sess.run(None, {name: x})[0], np.float32).reshape(size)
+        pred[f] = cv2.resize(out, (W, H), interpolation=cv2.INTER_LINEAR)
+        if reporter is not None:
+            reporter.progress("depth", f + 1, F)
+    return pred, kind
+
+
+def _align_predictions(pred, kind, anchors, median):
+    """Each frame's model output ``pred [F,H,W]`` fitted to its anchors (robust affine, in the
+    model's ``kind`` of value) -> (depth [F,H,W], confidence [F,H,W])."""
+    F, H, W = pred.shape
+    depth = np.empty((F, H, W), np.float32); conf = np.zeros((F, H, W), np.float32)
+    for f in range(F):
         a = anchors[f]
         if len(a) >= 3:
-            pa = pred[np.clip(a[:, 1].astype(int), 0, H - 1), np.clip(a[:, 0].astype(int), 0, W - 1)]
+            pa = pred[f][np.clip(a[:, 1].astype(int), 0, H - 1), np.clip(a[:, 0].astype(int), 0, W - 1)]
             tgt = 1.0 / a[:, 2] if kind == "inverse" else a[:, 2]
             s, t = robust_affine(pa.astype(np.float64), tgt.astype(np.float64))
             c = 0.9
         else:
             ref = 1.0 / median if kind == "inverse" else median
-            s, t = ref / max(float(np.median(pred)), 1e-9), 0.0
+            s, t = ref / max(float(np.median(pred[f])), 1e-9), 0.0
             c = 0.2
-        val = s * pred + t
+        val = s * pred[f] + t
         if kind == "inverse":
             val = 1.0 / np.maximum(val, 1e-6)
         depth[f] = np.clip(val, 1e-3 * median, 1e3 * median)
         conf[f] = c
-        if reporter is not None:
-            reporter.progress("depth", f + 1, F)
     return depth, conf
