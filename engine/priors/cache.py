@@ -40,7 +40,7 @@ from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
-ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth_pass1": 3, "dynamic": 7, "depth": 3}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth_pass1": 3, "dynamic": 7, "depth": 5}
 
 
 @dataclass
@@ -69,6 +69,8 @@ class PriorConfig:
     # weight-free depth: a moving pixel is no nearer than 1/ratio of the static surface
     # behind it (engine.priors.depth.merge_moving_depth)
     moving_depth_ratio: float = 4.0
+    # ... and at most this fraction of that surface's depth: in front of what it covers
+    moving_depth_front: float = 0.9
     depth_model: str | None = None
     depth_path: str | None = None
     depth_width: int = 320
@@ -186,7 +188,7 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
     # depth, first pass (depends on tracks unless precomputed): what the motion mask needs
     dp = {"backend": cfg.depth_backend, "model": _file_id(cfg.depth_model), "path": _file_id(cfg.depth_path),
           "w": cfg.depth_width, "out": cfg.depth_output}
-    dp2 = dict(dp, ratio=cfg.moving_depth_ratio)
+    dp2 = dict(dp, ratio=cfg.moving_depth_ratio, front=cfg.moving_depth_front)
     # a precomputed mask is known before depth: its dynamic regions give no anchors
     pre_mask = _pre.load_mask(cfg.mask_path, (F, H, W)) if cfg.mask_path else None
     up = () if cfg.depth_path else (keys["tracks"], _file_id(cfg.mask_path))
@@ -241,7 +243,8 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
         def second_pass(first=depth):
             static, conf = estimate(dyn)
             if cfg.depth_backend == "sparse":  # a depth model sees moving things itself
-                static = _depth.merge_moving_depth(first, static, dyn, max_ratio=cfg.moving_depth_ratio)
+                static = _depth.merge_moving_depth(first, static, dyn, max_ratio=cfg.moving_depth_ratio,
+                                                   front=cfg.moving_depth_front)
             return static, conf
 
         depth, dconf = cached_depth("depth", k, second_pass)

@@ -52,15 +52,19 @@ def test_a_short_track_in_front_of_the_lens_is_no_anchor():
 
 
 def test_moving_pixels_keep_the_first_pass_within_occlusion_order():
-    static = np.full((1, 4, 4), 10.0, np.float32)
-    first = np.array([[[6.0, 0.1, 14.0, 3.0]] * 4], np.float32)  # fine, too near, behind the wall, near
-    moving = np.zeros((1, 4, 4), np.float32)
-    moving[:, :, :3] = 1.0  # the last column is static: it takes the static pass whatever the first said
-    out = merge_moving_depth(first, static, moving, max_ratio=4.0)
+    static = np.full((1, 4, 6), 10.0, np.float32)
+    # fine, too near, behind the wall, at the wall (no depth of its own: a fixed camera),
+    # just in front of the wall, near
+    first = np.array([[[6.0, 0.1, 14.0, 10.0, 9.5, 3.0]] * 4], np.float32)
+    moving = np.zeros((1, 4, 6), np.float32)
+    moving[:, :, :5] = 1.0  # the last column is static: it takes the static pass whatever the first said
+    out = merge_moving_depth(first, static, moving, max_ratio=4.0, front=0.9)
     assert np.allclose(out[0, :, 0], 6.0)  # a plausible moving depth is kept
     assert np.allclose(out[0, :, 1], 2.5)  # no nearer than 1/4 of the surface behind
-    assert np.allclose(out[0, :, 2], 10.0)  # no farther than the surface it occludes
-    assert np.allclose(out[0, :, 3], 10.0)
+    assert np.allclose(out[0, :, 2], 9.0)  # in front of the surface it occludes
+    assert np.allclose(out[0, :, 3], 9.0)  # a tie with the background is broken in front of it
+    assert np.allclose(out[0, :, 4], 9.5)  # a measured depth in front of it is kept
+    assert np.allclose(out[0, :, 5], 10.0)
     assert out.dtype == np.float32
 
 
