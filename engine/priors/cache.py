@@ -69,7 +69,8 @@ class PriorConfig:
     # weight-free depth: a moving pixel is no nearer than 1/ratio of the static surface
     # behind it (engine.priors.depth.merge_moving_depth)
     moving_depth_ratio: float = 4.0
-    # ... and at most this fraction of that surface's depth: in front of what it covers
+    # ... and one the first pass puts at or behind that surface goes to this fraction of its
+    # depth: in front of what it covers
     moving_depth_front: float = 0.9
     depth_model: str | None = None
     depth_path: str | None = None
