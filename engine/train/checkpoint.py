@@ -132,6 +132,7 @@ def model_from_state(sd: dict, cfg, extent: float, device):
     # a checkpoint from before Gaussian lifespans: every Gaussian always visible
     sd.setdefault("gauss_t_center", torch.zeros(sd["means"].shape[0]))
     sd.setdefault("gauss_lifespan", torch.zeros(sd["means"].shape[0]))
+    sd.setdefault("lifespan_log_scale", torch.zeros(sd["means"].shape[0]))  # before learned lifespans
     g = sd["means"].shape[0]
     # Rebuild the model with the checkpoint's shapes, then load exact values.
     nodes_keys = sd.get("pos_keys")

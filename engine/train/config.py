@@ -111,6 +111,9 @@ class TrainConfig:
     lifespan_frames: float = 1.0         # ... the lifespan's sigma in training-frame intervals (docs/benchmarks.md)
     lifespan_seed_factor: float = 4.0    # ... and dynamic_gaussians times this many moving Gaussians seeded (each
                                          # frame shows only its own few)
+    lifespan_min: float = 0.5            # ... each one's lifespan is learned (lr_lifespan), within these factors of
+    lifespan_max: float = 4.0            # lifespan_frames: short where its nodes lose the object, long where they
+                                         # follow it (engine/train/lifespan.py)
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     node_rotations: str = "tracks"       # initial node rotations: "tracks" (rigid rotation of each node's lifted
@@ -135,6 +138,7 @@ class TrainConfig:
     lr_scales: float = 5e-3
     lr_opacity: float = 5e-2
     lr_sh: float = 2.5e-3
+    lr_lifespan: float = 2e-2            # log of each moving Gaussian's lifespan factor; 0 = lifespans as seeded
     # relative to scene extent; spline keys decay log-linearly from lr_node_keys to
     # lr_node_keys_final, like the means. 1e-3 -> 1e-5 was set when every node trained and the
     # static ones drifted; with the split static nodes are frozen and only moving ones use it:
@@ -210,6 +214,8 @@ class TrainConfig:
                 "max_nodes_factor", "node_prune_weight", "lifespan_frames", "lifespan_seed_factor"]:
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
+        if not 0 < self.lifespan_min <= 1 <= self.lifespan_max:
+            bad("lifespan_min", "and lifespan_max must satisfy 0 < lifespan_min <= 1 <= lifespan_max")
         if not (0 <= self.canonical_time <= 1 or self.canonical_time == -1):
             bad("canonical_time", "must be in [0, 1] (fraction of the training frames) or -1 (source frames)")
         if self.bind_k > self.num_nodes:

@@ -27,7 +27,7 @@ def bundle_arrays(model: DynamicScene) -> tuple[B.NodeArrays, B.GaussianArrays]:
         graph_idx=m.graph_idx.cpu().numpy() if m.graph_idx.shape[1] else None)
     if bool((m.gauss_lifespan > 0).any()):  # bundles without lifespans stay as they were
         nodes.gauss_t_center = m.gauss_t_center.cpu().numpy()
-        nodes.gauss_lifespan = m.gauss_lifespan.cpu().numpy()
+        nodes.gauss_lifespan = m.lifespans().detach().cpu().numpy()  # as learned
     gaussians = B.GaussianArrays(means=m.means.detach().cpu().numpy(),
                                  quats=quat_normalize(m.quats.detach()).cpu().numpy(),
                                  log_scales=m.log_scales.detach().cpu().numpy(),

@@ -20,9 +20,21 @@ The window is ``exp(-0.5 ((t - t_center) / lifespan)^2)`` on the opacity
 (:meth:`engine.train.model.DynamicScene.opacities_at`); a lifespan of 0 is always visible.
 The bundle stores both per Gaussian (``nodes.npz`` ``gauss_t_center`` / ``gauss_lifespan``)
 and the Blender preview applies the same window per frame.
+
+Each moving Gaussian's lifespan is learned (``lifespan_log_scale``, ``TrainConfig.lr_lifespan``),
+within ``lifespan_min`` .. ``lifespan_max`` times the seeded one (:func:`clamp_lifespans_`).
+Why: one lifespan for all is a compromise between the parts whose nodes follow them (a torso,
+a slow cup: a long life is right and fills the frames between) and the fast ones whose nodes
+lose them within a frame (a cup swept across the table): there a Gaussian shown at the
+neighbouring frames sits off the object, the loss of those frames keeps its opacity low, and
+the fast object renders as scattered, faint fragments on its own frame too. Learned, the fast
+part's Gaussians shorten their lives and turn opaque (cups.mp4: training frames +1.7 dB,
+withheld +0.4 dB, docs/benchmarks.md).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -83,3 +95,11 @@ def resolve_lifespan(mode: str, frames: float, train_times: torch.Tensor, train_
         return 0.0
     gap = torch.diff(torch.sort(train_times.flatten()).values).median()
     return float(frames * gap)
+
+
+@torch.no_grad()
+def clamp_lifespans_(model, cfg) -> None:
+    """Keep every learned lifespan within ``cfg.lifespan_min`` .. ``cfg.lifespan_max`` times its
+    seeded one (in place on ``model.lifespan_log_scale [G]``; a projection after each optimiser
+    step, so the model itself needs no config)."""
+    model.lifespan_log_scale.clamp_(math.log(cfg.lifespan_min), math.log(cfg.lifespan_max))

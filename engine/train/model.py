@@ -136,8 +136,14 @@ class DynamicScene(nn.Module):
     bind_idx [G, K_b], bind_w [G, K_b]; graph_idx [N, k]; node_p_dyn [N]; node_fg [N];
     node_dyn [N] bool, gauss_dyn [G] bool: the static / dynamic split
     (``engine/train/split.py``; all True = one class, the model before the split);
-    gauss_t_center [G], gauss_lifespan [G]: each Gaussian's lifespan in engine time
-    (:meth:`opacities_at`; lifespan 0 = always visible, the default).
+    gauss_t_center [G], gauss_lifespan [G]: each Gaussian's lifespan as seeded, in engine
+    time (:meth:`opacities_at`; lifespan 0 = always visible, the default).
+
+    Parameters (per Gaussian, besides appearance and geometry)
+    ----------------------------------------------------------
+    lifespan_log_scale [G]: log of the factor each Gaussian's lifespan has learned over its
+    seeded one (:meth:`lifespans`; 0 = as seeded; the trainer keeps it inside
+    ``TrainConfig.lifespan_min`` .. ``lifespan_max``, ``engine/train/lifespan.py``).
     """
 
     def __init__(self, means, colors, scales, opacities, node_centers, node_radii, key_times, pos_keys,
@@ -186,6 +192,7 @@ class DynamicScene(nn.Module):
         self.register_buffer("gauss_dyn", torch.ones(g, dtype=torch.bool, device=dev))
         self.register_buffer("gauss_t_center", torch.zeros(g, device=dev, dtype=dt))
         self.register_buffer("gauss_lifespan", torch.zeros(g, device=dev, dtype=dt))
+        self.lifespan_log_scale = nn.Parameter(torch.zeros(g, device=dev, dtype=dt))
         self.register_buffer("bind_idx", torch.zeros(g, self.bind_k, dtype=torch.long, device=dev))
         self.register_buffer("bind_w", torch.zeros(g, self.bind_k, device=dev, dtype=dt))
         self.rebind()
@@ -207,14 +214,19 @@ class DynamicScene(nn.Module):
         """Opacity [G] without lifespans (what densification prunes on)."""
         return torch.sigmoid(self.opacity_logits)
 
+    def lifespans(self) -> torch.Tensor:
+        """Lifespan [G] in engine time: the seeded one times ``exp(lifespan_log_scale)`` (0 =
+        always visible). What the bundle stores and the Blender preview windows by."""
+        return self.gauss_lifespan * torch.exp(self.lifespan_log_scale)
+
     def opacities_at(self, t: float | None) -> torch.Tensor:
         """Opacity [G] at engine time ``t``: :meth:`opacities` times each Gaussian's lifespan
-        window ``exp(-0.5 ((t - t_center) / lifespan)^2)`` (1 where the lifespan is 0, and
-        everywhere when ``t`` is None)."""
+        window ``exp(-0.5 ((t - t_center) / lifespan)^2)`` (:meth:`lifespans`; 1 where the
+        lifespan is 0, and everywhere when ``t`` is None)."""
         opacity = self.opacities()
         if t is None or not bool((self.gauss_lifespan > 0).any()):
             return opacity
-        return opacity * lifespan_window(float(t), self.gauss_t_center, self.gauss_lifespan)
+        return opacity * lifespan_window(float(t), self.gauss_t_center, self.lifespans())
 
     def sh(self) -> torch.Tensor:
         """[G, M, 3] spherical-harmonic coefficients."""

@@ -13,7 +13,7 @@ import torch
 from .config import TrainConfig
 from .model import DynamicScene
 
-GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "lifespan_log_scale")
 #: per-Gaussian buffers (not optimised) that a row edit must carry along with the parameters
 GAUSSIAN_BUFFERS = ("gauss_dyn", "gauss_t_center", "gauss_lifespan")
 NODE_PARAMS = ("pos_keys", "rot_keys")  # node_log_radii is a buffer (DynamicScene), edited beside them
@@ -28,6 +28,8 @@ def make_optimizer(model: DynamicScene, cfg: TrainConfig) -> torch.optim.Adam:
         {"name": "opacity_logits", "params": [model.opacity_logits], "lr": cfg.lr_opacity},
         {"name": "sh_dc", "params": [model.sh_dc], "lr": cfg.lr_sh},
         {"name": "sh_rest", "params": [model.sh_rest], "lr": cfg.lr_sh / 20},
+        # no gradient reaches it without lifespans (opacities_at skips the window)
+        {"name": "lifespan_log_scale", "params": [model.lifespan_log_scale], "lr": cfg.lr_lifespan},
     ]
     if model.mlp is not None:
         groups.append({"name": "mlp", "params": list(model.mlp.parameters()), "lr": cfg.lr_mlp})

@@ -31,7 +31,7 @@ from . import losses as L
 from .config import TrainConfig
 from .data import TrainingData
 from .export import bundle_arrays, bundle_cameras
-from .lifespan import camera_translates
+from .lifespan import camera_translates, clamp_lifespans_
 from .objective import Objective
 from .param_edit import make_optimizer  # noqa: F401  (re-exported)
 from .phases import no_phase
@@ -269,6 +269,7 @@ class Trainer:
                                 p.grad = None
                 with ph("optimizer"):
                     self.opt.step()
+                    clamp_lifespans_(self.model, cfg)
                 with torch.no_grad(), ph("densify_stats"):
                     self.gaussian_strategy.step_post_backward(self.step, out, d.width, d.height)
                 self.step += 1

@@ -116,6 +116,9 @@ def test_training_densifies_with_the_lifespans_and_the_bundle_round_trips(tmp_pa
     for name in ("gauss_dyn", "gauss_t_center", "gauss_lifespan"):
         assert getattr(m, name).shape == (m.num_gaussians,)
     assert bool(((m.gauss_lifespan > 0) == m.gauss_dyn).all())  # copies inherit their source's lifespan
+    factor = (m.lifespans()[m.gauss_dyn] / m.gauss_lifespan[m.gauss_dyn]).detach()
+    assert bool((factor - 1).abs().max() > 1e-3)  # learned ...
+    assert bool((factor >= cfg.lifespan_min - 1e-6).all() and (factor <= cfg.lifespan_max + 1e-6).all())  # ... in range
     nodes, gaussians = bundle_arrays(m)
     assert nodes.gauss_lifespan is not None
     trainer.export_bundle()
@@ -132,6 +135,43 @@ def test_training_densifies_with_the_lifespans_and_the_bundle_round_trips(tmp_pa
         t = float(np.clip(B.time_of_frame(bundle.scene, frame), 0, 1))
         exported = torch.sigmoid(torch.tensor(np.array(B.read_ply(tmp_path / "seq" / f"frame_{frame:05d}.ply").opacity_logits)))
         torch.testing.assert_close(exported, loaded.opacities_at(t).float(), atol=1e-5, rtol=1e-4)
+
+
+def test_lifespans_learn_short_where_wrong_and_long_where_right():
+    """The lifespan is a parameter: a moving Gaussian that the neighbouring frames do not want
+    (its nodes lost the object there) shortens its life, one they want lengthens it, each
+    within ``lifespan_min`` .. ``lifespan_max`` of the seeded one; static Gaussians and
+    ``lr_lifespan`` 0 keep theirs."""
+    from engine.train.lifespan import clamp_lifespans_
+    from engine.train.param_edit import make_optimizer
+
+    data, truth = make_scene(fixed_camera=True)
+    cfg = _cfg()
+    gap = float(torch.diff(data.times[data.train_idx]).median())
+    for lr in (cfg.lr_lifespan, 0.0):
+        model = build_model(data, make_nodes(truth), dataclasses.replace(cfg, lr_lifespan=lr),
+                            torch.Generator().manual_seed(0))
+        seeded = model.gauss_lifespan.clone()
+        dyn = torch.nonzero(model.gauss_dyn).squeeze(1)
+        wrong, right = dyn[0::2], dyn[1::2]
+        opt = make_optimizer(model, dataclasses.replace(cfg, lr_lifespan=lr))
+        for _ in range(200):
+            opt.zero_grad(set_to_none=True)
+            # shown one frame off its seed time (t_center + gap): penalised for `wrong`, wanted for `right`
+            shown = torch.stack([model.opacities_at(float(t))
+                                 for t in model.gauss_t_center[dyn[:2]] + gap])  # two times: one per class
+            loss = shown[0, wrong].sum() - shown[1, right].sum()
+            loss.backward()
+            opt.step()
+            clamp_lifespans_(model, cfg)
+        factor = (model.lifespans() / seeded.clamp_min(1e-12)).detach()
+        if lr == 0:
+            torch.testing.assert_close(model.lifespans().detach(), seeded)
+            continue
+        same_time = lambda idx, k: idx[model.gauss_t_center[idx] == model.gauss_t_center[dyn[k]]]  # noqa: E731
+        assert float(factor[same_time(wrong, 0)].max()) == pytest.approx(cfg.lifespan_min, rel=1e-4)
+        assert float(factor[same_time(right, 1)].min()) == pytest.approx(cfg.lifespan_max, rel=1e-4)
+        assert bool((model.lifespans()[~model.gauss_dyn] == 0).all())  # static: always visible
 
 
 def test_bundle_refuses_broken_lifespans():
