@@ -53,7 +53,8 @@ def triangulate_tracks(xy, visible, K, w2c, max_reproj=2.0, min_angle_deg=0.5):
     A = np.stack([x * Pm[None, :, 2] - Pm[None, :, 0], y * Pm[None, :, 2] - Pm[None, :, 1]], 2)
     A = A * visible[..., None, None]  # [P,F,2,4]
     A = A / np.maximum(np.linalg.norm(A, axis=-1, keepdims=True), 1e-9)
-    _, _, vt = np.linalg.svd(A.reshape(P, 2 * F, 4).astype(np.float64))
+    # reduced SVD: the full one also builds U [P, 2F, 2F] (52 GB for 20k tracks over 300 frames)
+    _, _, vt = np.linalg.svd(A.reshape(P, 2 * F, 4).astype(np.float64), full_matrices=False)
     Xh = vt[:, -1]
     X = Xh[:, :3] / np.where(np.abs(Xh[:, 3:]) < 1e-12, 1e-12, Xh[:, 3:])
     cam = np.einsum("fij,pj->pfi", w2c[:, :3, :3], X) + w2c[None, :, :3, 3]
