@@ -19,7 +19,7 @@ import torch
 from . import bundle as B
 from .errors import InputError
 from .protocol import Reporter
-from .train.config import TrainConfig
+from .train.config import TrainConfig, scale_to_frames
 from .train.data import TrainingData
 
 
@@ -365,6 +365,12 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
     prep = prepare(clip, cfg, prior_config, cache_dir=cache_dir or Path(out_dir) / "cache", reporter=reporter)
     # the bundle's config records what ran: "auto" decided by where the depth came from
     cfg = dataclasses.replace(cfg, motion_init=resolve_motion_init(prep, cfg))
+    scaled = scale_to_frames(cfg, len(prep.train_idx))
+    if scaled.steps != cfg.steps:
+        reporter.log(f"training {scaled.steps} steps, {cfg.min_steps_per_frame:g} per training frame over "
+                     f"{len(prep.train_idx)} frames (the {cfg.preset} preset's {cfg.steps} are meant for ~60; "
+                     f"--steps N trains exactly N, --max-frames fewer frames)")
+    cfg = scaled
     reporter.log(f"node motion starts from {'lifted tracks' if cfg.motion_init == 'tracks' else 'rest'} "
                  f"(depth prior: {prep.priors.depth_source})")
     if overwrite and not resume:  # the input is read and validated: only now replace the earlier run

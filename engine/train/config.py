@@ -131,6 +131,9 @@ class TrainConfig:
 
     # optimisation
     steps: int = 600
+    min_steps_per_frame: float = 10.0    # a long clip trains at least this many steps per training frame (steps
+                                         # and the step schedule scaled up, scale_to_frames); 0 = steps as given,
+                                         # which an explicit steps value implies (preset_config)
     warmup_static_steps: int = 50        # first steps train appearance with motion frozen
     lr_means: float = 1.6e-4             # relative to scene extent
     lr_means_final: float = 1.6e-6
@@ -211,7 +214,8 @@ class TrainConfig:
                 bad(key, f"is {getattr(self, key)}, above the largest sensible value {limit}")
         for key in [f.name for f in dataclasses.fields(self) if f.name.startswith("lr_")] + [
                 "densify_grad_threshold", "percent_dense", "opacity_prune", "node_spawn_factor",
-                "max_nodes_factor", "node_prune_weight", "lifespan_frames", "lifespan_seed_factor"]:
+                "max_nodes_factor", "node_prune_weight", "lifespan_frames", "lifespan_seed_factor",
+                "min_steps_per_frame"]:
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
         if not 0 < self.lifespan_min <= 1 <= self.lifespan_max:
@@ -342,10 +346,39 @@ def preset_config(name: str, source: str | None = None, **overrides: Any) -> Tra
     if name not in PRESETS:
         raise InputError(f"unknown preset {name!r}", None, f"choose one of {sorted(PRESETS)}")
     values = dict(PRESETS[name])
-    values.update({k: v for k, v in overrides.items() if v is not None})
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if "steps" in given and "min_steps_per_frame" not in given:
+        given["min_steps_per_frame"] = 0.0  # a step count asked for is kept as it is
+    values.update(given)
     values["preset"] = name
     loss = values.pop("loss", None)
     cfg = TrainConfig.from_dict(values, source)
     if loss is not None:
         cfg.loss = loss if isinstance(loss, LossWeights) else _loss_from_dict(loss, source)
     return cfg.validate(source)
+
+
+#: step-counted schedule settings that :func:`scale_to_frames` scales with ``steps``
+STEP_SCHEDULE = ("warmup_static_steps", "densify_from", "densify_until", "densify_every", "rebind_every",
+                 "checkpoint_every", "opacity_reset_every")
+
+
+def scale_to_frames(cfg: TrainConfig, train_frames: int) -> TrainConfig:
+    """``cfg`` with at least ``cfg.min_steps_per_frame`` steps per training frame.
+
+    Why: each frame's moving Gaussians (lifespans) and the node keys near its time learn only
+    on the steps that draw that frame. The presets' step counts are set for a clip of ~60
+    frames (preview: 600 steps, ~11 per frame); over a whole 300-frame clip the same 600 left
+    each frame two visits, and cups.mp4 trained +4.55 dB over the still plate instead of +8
+    (its moving cups misplaced and smeared; +7.05 at 2880 steps, docs/benchmarks.md). The
+    steps rise to ``ceil(min_steps_per_frame * train_frames)`` and :data:`STEP_SCHEDULE`
+    (warm-up, densification window and interval, rebinding, checkpoints) by the same factor,
+    so the run keeps the preset's shape. A config that already gives enough steps, or sets
+    ``min_steps_per_frame`` 0 (any explicit ``steps``: :func:`preset_config`), is returned as it is.
+    """
+    want = int(math.ceil(cfg.min_steps_per_frame * max(int(train_frames), 0)))
+    if cfg.min_steps_per_frame <= 0 or want <= cfg.steps:
+        return cfg
+    factor = want / cfg.steps
+    scaled = {key: int(round(getattr(cfg, key) * factor)) for key in STEP_SCHEDULE if getattr(cfg, key) > 0}
+    return dataclasses.replace(cfg, steps=want, **scaled).validate()
