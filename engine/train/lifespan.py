@@ -28,8 +28,8 @@ a slow cup: a long life is right and fills the frames between) and the fast ones
 lose them within a frame (a cup swept across the table): there a Gaussian shown at the
 neighbouring frames sits off the object, the loss of those frames keeps its opacity low, and
 the fast object renders as scattered, faint fragments on its own frame too. Learned, the fast
-part's Gaussians shorten their lives and turn opaque (cups.mp4: training frames +1.7 dB,
-withheld +0.4 dB, docs/benchmarks.md).
+part's Gaussians shorten their lives and turn opaque (cups.mp4: training frames +1.8 dB,
+withheld +0.3 dB over 3 seeds, docs/benchmarks.md).
 """
 
 from __future__ import annotations
