@@ -370,7 +370,8 @@ def scale_to_frames(cfg: TrainConfig, train_frames: int) -> TrainConfig:
     on the steps that draw that frame. The presets' step counts are set for a clip of ~60
     frames (preview: 600 steps, ~11 per frame); over a whole 300-frame clip the same 600 left
     each frame two visits, and cups.mp4 trained +4.55 dB over the still plate instead of +8
-    (its moving cups misplaced and smeared; +7.05 at 2880 steps, docs/benchmarks.md). The
+    (its moving cups misplaced and smeared; 3000 steps with the schedule scaled: +7.31,
+    docs/benchmarks.md). The
     steps rise to ``ceil(min_steps_per_frame * train_frames)`` and :data:`STEP_SCHEDULE`
     (warm-up, densification window and interval, rebinding, checkpoints) by the same factor,
     so the run keeps the preset's shape. A config that already gives enough steps, or sets

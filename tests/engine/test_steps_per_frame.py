@@ -17,7 +17,7 @@ from .test_holdout import _video
 
 def test_a_long_clip_gets_more_steps_and_the_schedule_keeps_its_shape():
     cfg = preset_config("preview")
-    long = scale_to_frames(cfg, 288)  # cups.mp4 whole: 288 training frames
+    long = scale_to_frames(cfg, 288)  # a long clip (cups.mp4 whole trains 300 frames)
     assert long.steps == 2880 and long.steps / 288 >= cfg.min_steps_per_frame
     factor = long.steps / cfg.steps
     for key in STEP_SCHEDULE:
