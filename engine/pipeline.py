@@ -18,6 +18,7 @@ import torch
 
 from . import bundle as B
 from .errors import InputError
+from .geometry.camera import scene_extent
 from .protocol import Reporter
 from .train.config import TrainConfig, scale_to_frames
 from .train.data import TrainingData
@@ -82,15 +83,6 @@ def load_frames_at_width(clip, width: int, reporter: Reporter | None = None, max
     K[:, 0, :] *= width / clip.width
     K[:, 1, :] *= height / clip.height
     return frames, K, idx
-
-
-def scene_extent(w2c: np.ndarray, depth: np.ndarray | None = None) -> float:
-    """A robust scene radius: camera spread plus the median scene depth."""
-    R, t = w2c[:, :3, :3], w2c[:, :3, 3]
-    centers = -np.einsum("fji,fj->fi", R, t)
-    spread = float(np.linalg.norm(centers - centers.mean(0), axis=1).max()) if len(centers) > 1 else 0.0
-    med = float(np.median(depth[depth > 0])) if depth is not None and (depth > 0).any() else 1.0
-    return max(spread + med, 1e-3)
 
 
 def training_data(prep: PreparedClip, device="cpu") -> TrainingData:

@@ -52,6 +52,10 @@ def add_clip_options(parser):
     pri.add_argument("--depth-path", help="precomputed depth (.npy [F,H,W] or folder of 16-bit PNG)")
     pri.add_argument("--mask-path", help="precomputed masks (folder of PNG)")
     pri.add_argument("--tracks-path", help="precomputed tracks (.npz with xy [P,F,2], visible [P,F])")
+    pri.add_argument("--resting-objects", choices=("auto", "off"),
+                     help="motion mask: things that rest at some times and move at others (a cup set down and "
+                          "picked up again) are moving content in every frame (default auto: when the camera does "
+                          "not translate; off: only where they move)")
     pri.add_argument("--no-models", action="store_true",
                      help="ignore installed models (python -m engine models): weight-free backends for every "
                           "prior not given above")
@@ -103,6 +107,8 @@ def prior_config_from_args(args):
     if getattr(args, "flow_model", None):
         cfg.flow_backend, cfg.flow_model = "onnx", args.flow_model
     cfg.depth_output = getattr(args, "depth_output", None)
+    if getattr(args, "resting_objects", None):
+        cfg.resting_objects = args.resting_objects
     cfg.depth_path, cfg.mask_path, cfg.tracks_path = args.depth_path, args.mask_path, args.tracks_path
     given = manifest_priors(args.clip)  # a clip manifest's own precomputed priors, unless an option overrides
     cfg.depth_path = cfg.depth_path or given.get("depth")

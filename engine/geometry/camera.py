@@ -34,6 +34,30 @@ def camera_centers(w2c: torch.Tensor) -> torch.Tensor:
     return -(R.transpose(-1, -2) @ w2c[..., :3, 3].unsqueeze(-1)).squeeze(-1)
 
 
+#: camera centres within this fraction of the scene extent of each other: a camera that does not translate
+FIXED_CAMERA_TOL = 1e-4
+
+
+def camera_translates(w2c: torch.Tensor, extent: float) -> bool:
+    """Whether the camera centres of ``w2c [F, 4, 4]`` move by more than
+    :data:`FIXED_CAMERA_TOL` of the scene ``extent`` (a tripod or a rotation-only solve: no)."""
+    centres = camera_centers(w2c)
+    spread = (centres - centres.mean(0)).norm(dim=1).max()
+    return bool(spread > FIXED_CAMERA_TOL * max(float(extent), 1e-12))
+
+
+def scene_extent(w2c, depth=None) -> float:
+    """A robust scene radius: the camera centres' spread plus the median positive scene
+    depth (1 without one). ``w2c [F, 4, 4]``, ``depth [F, H, W]``: numpy arrays."""
+    import numpy as np
+
+    centres = camera_centers(torch.as_tensor(np.asarray(w2c), dtype=torch.float64)).numpy()
+    spread = float(np.linalg.norm(centres - centres.mean(0), axis=1).max()) if len(centres) > 1 else 0.0
+    d = None if depth is None else np.asarray(depth)
+    med = float(np.median(d[d > 0])) if d is not None and (d > 0).any() else 1.0  # numpy's median: the mean of the middle two
+    return max(spread + med, 1e-3)
+
+
 def invert_rigid(T: torch.Tensor) -> torch.Tensor:
     """Inverse of rigid ``[..., 4, 4]`` transforms."""
     out = torch.zeros_like(T)

@@ -32,15 +32,18 @@ from pathlib import Path
 import numpy as np
 
 from ..fsutil import atomic_save_npz
+from ..geometry.camera import scene_extent
 from . import depth as _depth
 from . import flow as _flow
 from . import motion as _motion
 from . import precomputed as _pre
+from . import resting as _resting
 from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
-ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth_pass1": 3, "dynamic": 7, "depth": 5}
+RESTING_MODES = ("auto", "off")
+ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth_pass1": 3, "dynamic": 8, "depth": 5}
 
 
 @dataclass
@@ -81,6 +84,9 @@ class PriorConfig:
     mask_path: str | None = None
     mask_width: int = 320
     foreground_classes: list | None = field(default=None)
+    # motion mask: objects that rest at some times and move at others are dynamic in every
+    # frame when the camera does not translate ('auto') or never ('off'); engine/priors/resting.py
+    resting_objects: str = "auto"
 
 
 @dataclass
@@ -135,6 +141,23 @@ def _load(cache, name, key):
 def _save(cache, name, key, **arrays):
     if cache is not None:
         atomic_save_npz(cache / f"{name}-{key}.npz", **arrays)
+
+
+def _with_resting_objects(frames, dyn, K, w2c, depth, mode, log):
+    """The motion prior with objects at rest that move at other times made dynamic in every
+    frame (:mod:`engine.priors.resting`) when ``mode`` is 'auto' and it applies; else as given."""
+    if mode not in RESTING_MODES:
+        raise ValueError(f"PriorConfig.resting_objects must be one of {RESTING_MODES}, not {mode!r}")
+    if mode == "off":
+        return dyn
+    out, st = _resting.resting_objects(frames, dyn, K, w2c, scene_extent(w2c, depth))
+    if out is None:
+        if st["reason"] and st["reason"] != "the camera translates":
+            log(f"dynamic prior: objects at rest left as they were ({st['reason']})")
+        return dyn
+    log(f"dynamic prior: {st['share']:.0%} of the view holds something still at some times and not at others "
+        f"(in {st['frames_needed']}+ frames): dynamic in every frame")
+    return out
 
 
 def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=None, reporter=None) -> Priors:
@@ -221,7 +244,8 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
 
     # dynamic mask (motion backend depends on depth)
     mp = {"backend": cfg.mask_backend, "model": _file_id(cfg.mask_model), "path": _file_id(cfg.mask_path),
-          "w": cfg.mask_width, "fg": cfg.foreground_classes, "flow": fid if cfg.mask_backend == "motion" else None}
+          "w": cfg.mask_width, "fg": cfg.foreground_classes, "flow": fid if cfg.mask_backend == "motion" else None,
+          "resting": cfg.resting_objects if cfg.mask_backend == "motion" else None}
     up = (keys["depth_pass1"],) if (cfg.mask_backend == "motion" and not cfg.mask_path) else ()
     keys["dynamic"] = k = prior_key("dynamic", cid, mp, up)
     z = _load(cache, "dynamic", k)
@@ -234,6 +258,8 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
         else:
             dyn = _motion.dynamic_mask(frames, K, w2c, depth, cfg.mask_backend, cfg.mask_model, cfg.mask_width,
                                        cfg.foreground_classes, reporter=reporter, source=source)
+            if cfg.mask_backend == "motion":
+                dyn = _with_resting_objects(frames, dyn, K, w2c, depth, cfg.resting_objects, log)
         _save(cache, "dynamic", k, dynamic=dyn)
 
     # depth handed on: anchored on static tracks only (module docstring); a file or a mask

@@ -38,11 +38,8 @@ import math
 
 import torch
 
-from ..geometry.camera import camera_centers
+from ..geometry.camera import FIXED_CAMERA_TOL, camera_translates  # noqa: F401 (re-exported)
 from .config import LIFESPAN_MODES
-
-#: camera centres within this fraction of the scene extent of each other: a camera that does not translate
-FIXED_CAMERA_TOL = 1e-4
 
 
 def lifespan_window(t: float, t_center: torch.Tensor, lifespan: torch.Tensor) -> torch.Tensor:
@@ -51,14 +48,6 @@ def lifespan_window(t: float, t_center: torch.Tensor, lifespan: torch.Tensor) ->
     live = lifespan > 0
     z = (t - t_center) / torch.where(live, lifespan, torch.ones_like(lifespan))
     return torch.where(live, torch.exp(-0.5 * z * z), torch.ones_like(z))
-
-
-def camera_translates(w2c: torch.Tensor, extent: float) -> bool:
-    """Whether the camera centres of ``w2c [F, 4, 4]`` move by more than
-    :data:`FIXED_CAMERA_TOL` of the scene ``extent``."""
-    centres = camera_centers(w2c)
-    spread = (centres - centres.mean(0)).norm(dim=1).max()
-    return bool(spread > FIXED_CAMERA_TOL * max(float(extent), 1e-12))
 
 
 def lifespan_seed_count(cfg) -> int:
