@@ -220,7 +220,8 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
                                 data.w2c[data.train_idx], data.extent, data.held_out_cameras)
         s_pts, s_cols, s_scl, _ = initial_gaussians(data, cfg, gen, static_only=True)
         # with lifespans only the moving Gaussians of the frames around t show at t: seed more
-        seed_cfg = dataclasses.replace(cfg, dynamic_gaussians=lifespan_seed_count(cfg)) if life > 0 else cfg
+        seed_cfg = (dataclasses.replace(cfg, dynamic_gaussians=lifespan_seed_count(cfg, len(data.train_idx)))
+                    if life > 0 else cfg)
         d_pts, d_cols, d_scl, d_tms = dynamic_gaussians(data, seed_cfg, gen)
         d_canon = canonicalise(probe, d_pts, d_tms, torch.nonzero(node_dyn).squeeze(1), cfg.bind_k, identity)
         canon = torch.cat([s_pts, d_canon])  # static points are where they were seen

@@ -50,20 +50,30 @@ def lifespan_window(t: float, t_center: torch.Tensor, lifespan: torch.Tensor) ->
     return torch.where(live, torch.exp(-0.5 * z * z), torch.ones_like(z))
 
 
-def lifespan_seed_count(cfg) -> int:
-    """Moving Gaussians a run with lifespans seeds: ``dynamic_gaussians`` x ``lifespan_seed_factor``
-    (with lifespans a frame shows only the moving Gaussians seeded around it)."""
-    return int(round(cfg.dynamic_gaussians * cfg.lifespan_seed_factor))
-
-
-def gaussian_budget(cfg, model) -> int:
-    """The densification cap: ``cfg.max_gaussians``, raised by the extra moving seeds when the
-    model's Gaussians have lifespans. Why: the extra seeds are per-frame capacity, not
-    refinement, and without the raise they filled the cap before the first densification
-    (cups.mp4: 32.6k seeds against 30k, nothing densified; with the headroom a run without
-    lifespans has, training frames +5.69 -> +5.90 dB over 3 seeds at 3x the seeds,
+def lifespan_seed_count(cfg, train_frames: int = 0) -> int:
+    """Moving Gaussians a run with lifespans seeds over ``train_frames`` training frames:
+    ``dynamic_gaussians`` x ``lifespan_seed_factor`` (with lifespans a frame shows only the moving
+    Gaussians seeded around it), times ``train_frames / lifespan_seed_frames`` when the clip is
+    longer than that. Why the last factor: the seeds are spread over the frames, so a whole
+    300-frame clip got a fifth of the moving Gaussians per frame a 60-frame preview gets, and
+    its moving things rendered as soft blobs (cups.mp4, 262 training frames: 91 seeds a frame
+    against 460 at 60 frames; with the same per frame, training frames +1.55 dB, withheld +0.81,
     docs/benchmarks.md)."""
-    extra = lifespan_seed_count(cfg) - cfg.dynamic_gaussians if bool((model.gauss_lifespan > 0).any()) else 0
+    per_clip = cfg.dynamic_gaussians * cfg.lifespan_seed_factor
+    if cfg.lifespan_seed_frames > 0 and train_frames > cfg.lifespan_seed_frames:
+        per_clip *= train_frames / cfg.lifespan_seed_frames
+    return int(round(per_clip))
+
+
+def gaussian_budget(cfg, model, train_frames: int = 0) -> int:
+    """The densification cap: ``cfg.max_gaussians``, raised by the extra moving seeds when the
+    model's Gaussians have lifespans (:func:`lifespan_seed_count` over ``train_frames``). Why: the
+    extra seeds are per-frame capacity, not refinement, and without the raise they filled the cap
+    before the first densification (cups.mp4: 32.6k seeds against 30k, nothing densified; with the
+    headroom a run without lifespans has, training frames +5.69 -> +5.90 dB over 3 seeds at 3x the
+    seeds, docs/benchmarks.md)."""
+    extra = (lifespan_seed_count(cfg, train_frames) - cfg.dynamic_gaussians
+             if bool((model.gauss_lifespan > 0).any()) else 0)
     return int(cfg.max_gaussians + max(extra, 0))
 
 

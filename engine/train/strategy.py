@@ -45,11 +45,15 @@ class GaussianDensifyStrategy:
         ``densify_*``, ``percent_dense``, ``max_gaussians``, ``opacity_prune``.
     device : torch.device
         Where the statistics live (the training data's device).
+    train_frames : int
+        Training frames of the run (the moving seeds of a long clip with lifespans, and with
+        them the budget, grow with it: :func:`~engine.train.lifespan.gaussian_budget`).
     """
 
-    def __init__(self, cfg: TrainConfig, device):
+    def __init__(self, cfg: TrainConfig, device, train_frames: int = 0):
         self.cfg = cfg
         self.device = device
+        self.train_frames = int(train_frames)
         self.grad_accum: torch.Tensor | None = None
         self.grad_count: torch.Tensor | None = None
 
@@ -110,7 +114,7 @@ class GaussianDensifyStrategy:
         scales = m.scales().max(dim=1).values
         big = scales > cfg.percent_dense * m.extent
         hot = grads >= cfg.densify_grad_threshold
-        room = max(gaussian_budget(cfg, m) - m.num_gaussians, 0)
+        room = max(gaussian_budget(cfg, m, self.train_frames) - m.num_gaussians, 0)
         clone = torch.nonzero(hot & ~big).squeeze(1)
         split = torch.nonzero(hot & big).squeeze(1)
         # respect the budget: keep the hottest candidates

@@ -92,7 +92,7 @@ class Trainer:
         # the loss (and the track / static-motion state it keeps) and the densification
         # strategies; they share the run's generator, so the draws keep their order
         self.objective = Objective(self.data, self.cfg, self.gen)
-        self.gaussian_strategy = GaussianDensifyStrategy(self.cfg, self.device)
+        self.gaussian_strategy = GaussianDensifyStrategy(self.cfg, self.device, len(self.data.train_idx))
         self.node_strategy = NodeDensifyStrategy(self.cfg, self.data, self.device)
         # a PhaseTimer (engine/train/phases.py) when a bench profiles the step; None in runs
         self.phases = None

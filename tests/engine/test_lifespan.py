@@ -253,3 +253,36 @@ def test_lifespan_seeds_do_not_eat_the_densification_budget():
     # the headroom over the seeds is the same either way (seeding draws the same frames)
     assert abs((gaussian_budget(cfg, with_life) - with_life.num_gaussians)
                - (gaussian_budget(cfg, without) - without.num_gaussians)) <= len(data.train_idx) + 2
+
+
+def test_a_long_clip_seeds_as_many_moving_gaussians_per_frame_as_a_short_one():
+    """With lifespans a frame shows only its own moving seeds: a clip longer than
+    ``lifespan_seed_frames`` seeds proportionally more (the same per frame), and the cap rises by
+    as many, so densification keeps its headroom. Without lifespans nothing changes."""
+    from engine.train.lifespan import gaussian_budget, lifespan_seed_count
+
+    data, truth = make_scene(fixed_camera=True)  # 16 training frames
+    frames = len(data.train_idx)
+    cfg = _cfg(max_gaussians=1000)
+    short = dataclasses.replace(cfg, lifespan_seed_frames=frames)  # this clip is "short"
+    long = dataclasses.replace(cfg, lifespan_seed_frames=frames // 2)  # twice as long as that
+    assert lifespan_seed_count(short, frames) == lifespan_seed_count(cfg)
+    assert lifespan_seed_count(long, frames) == 2 * lifespan_seed_count(cfg)
+    assert lifespan_seed_count(dataclasses.replace(cfg, lifespan_seed_frames=0), 10 * frames) == \
+        lifespan_seed_count(cfg)
+    m_short = build_model(data, make_nodes(truth), short, torch.Generator().manual_seed(0))
+    m_long = build_model(data, make_nodes(truth), long, torch.Generator().manual_seed(0))
+    n_short, n_long = int(m_short.gauss_dyn.sum()), int(m_long.gauss_dyn.sum())
+    assert 1.9 * n_short <= n_long <= 2.1 * n_short
+    # per frame: each training frame gets about twice its seeds
+    t_short = torch.unique(m_short.gauss_t_center[m_short.gauss_dyn], return_counts=True)[1].float()
+    t_long = torch.unique(m_long.gauss_t_center[m_long.gauss_dyn], return_counts=True)[1].float()
+    assert 1.8 <= float(t_long.median() / t_short.median()) <= 2.2
+    # the extra seeds raise the cap by as many
+    assert gaussian_budget(long, m_long, frames) - gaussian_budget(short, m_short, frames) == \
+        lifespan_seed_count(long, frames) - lifespan_seed_count(short, frames)
+    # no lifespans (a moving camera with held-out cameras): the seeds and the cap stay
+    off = dataclasses.replace(long, lifespan="off")
+    m_off = build_model(data, make_nodes(truth), off, torch.Generator().manual_seed(0))
+    assert gaussian_budget(off, m_off, frames) == 1000
+    assert int(m_off.gauss_dyn.sum()) < 0.3 * n_short
