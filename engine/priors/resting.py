@@ -117,7 +117,8 @@ def resting_objects(frames: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c:
         dyn = np.stack([warp(dyn[f], Hs[f]) for f in range(F)])
         valid = np.stack([warp(ones, Hs[f], cv2.INTER_NEAREST) > 0.5 for f in range(F)])
     still = (dyn < cfg.dynamic_threshold) & valid
-    plate = _median_plate(small, still | ~np.any(still, 0, keepdims=True) & valid)
+    # the plate: each pixel's median over the frames where it is still (all its frames if never)
+    plate = _median_plate(small, still | (~np.any(still, 0, keepdims=True) & valid))
     # exposure drift: one gain per frame and channel, from the still pixels
     num = np.where(still[..., None], plate[None], 0).sum((1, 2))
     den = np.where(still[..., None], small, 0).sum((1, 2))
