@@ -112,7 +112,9 @@ class TrainConfig:
     lifespan_seed_factor: float = 4.0    # ... and dynamic_gaussians times this many moving Gaussians seeded (each
                                          # frame shows only its own few)
     lifespan_seed_frames: int = 60       # ... for a clip of up to this many training frames; a longer one seeds
-                                         # proportionally more (the same per frame; 0 = never more)
+                                         # proportionally more (the same per frame; 0 = never more),
+    lifespan_seed_max: int = 120_000     # ... up to this many in all (~300 frames' worth: the step time grows
+                                         # with every Gaussian, shown or not; a longer clip gets fewer per frame)
     lifespan_min: float = 0.5            # ... each one's lifespan is learned (lr_lifespan), within these factors of
     lifespan_max: float = 4.0            # lifespan_frames: short where its nodes lose the object, long where they
                                          # follow it (engine/train/lifespan.py)
@@ -217,7 +219,7 @@ class TrainConfig:
         for key in [f.name for f in dataclasses.fields(self) if f.name.startswith("lr_")] + [
                 "densify_grad_threshold", "percent_dense", "opacity_prune", "node_spawn_factor",
                 "max_nodes_factor", "node_prune_weight", "lifespan_frames", "lifespan_seed_factor",
-                "lifespan_seed_frames", "min_steps_per_frame"]:
+                "lifespan_seed_frames", "lifespan_seed_max", "min_steps_per_frame"]:
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
         if not 0 < self.lifespan_min <= 1 <= self.lifespan_max:

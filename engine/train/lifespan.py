@@ -58,10 +58,13 @@ def lifespan_seed_count(cfg, train_frames: int = 0) -> int:
     300-frame clip got a fifth of the moving Gaussians per frame a 60-frame preview gets, and
     its moving things rendered as soft blobs (cups.mp4, 262 training frames: 91 seeds a frame
     against 460 at 60 frames; with the same per frame, training frames +1.55 dB, withheld +0.81,
-    docs/benchmarks.md)."""
-    per_clip = cfg.dynamic_gaussians * cfg.lifespan_seed_factor
+    docs/benchmarks.md). The growth stops at ``lifespan_seed_max`` in all (never below the
+    short clip's count): every Gaussian costs step time whether its window shows it or not, so an
+    uncapped 2000-frame clip would seed 800k and train ~6x slower a step."""
+    base = cfg.dynamic_gaussians * cfg.lifespan_seed_factor
+    per_clip = base
     if cfg.lifespan_seed_frames > 0 and train_frames > cfg.lifespan_seed_frames:
-        per_clip *= train_frames / cfg.lifespan_seed_frames
+        per_clip = max(base, min(base * train_frames / cfg.lifespan_seed_frames, cfg.lifespan_seed_max))
     return int(round(per_clip))
 
 

@@ -270,6 +270,10 @@ def test_a_long_clip_seeds_as_many_moving_gaussians_per_frame_as_a_short_one():
     assert lifespan_seed_count(long, frames) == 2 * lifespan_seed_count(cfg)
     assert lifespan_seed_count(dataclasses.replace(cfg, lifespan_seed_frames=0), 10 * frames) == \
         lifespan_seed_count(cfg)
+    # a very long clip stops growing at lifespan_seed_max (never below the short clip's count)
+    base = lifespan_seed_count(cfg)
+    assert lifespan_seed_count(dataclasses.replace(long, lifespan_seed_max=3 * base), 100 * frames) == 3 * base
+    assert lifespan_seed_count(dataclasses.replace(long, lifespan_seed_max=base // 2), 100 * frames) == base
     m_short = build_model(data, make_nodes(truth), short, torch.Generator().manual_seed(0))
     m_long = build_model(data, make_nodes(truth), long, torch.Generator().manual_seed(0))
     n_short, n_long = int(m_short.gauss_dyn.sum()), int(m_long.gauss_dyn.sum())
