@@ -207,8 +207,9 @@ class DynamicScene(nn.Module):
         return int(self.node_centers.shape[0])
 
     # ------------------------------------------------------------------ appearance
-    def scales(self) -> torch.Tensor:
-        return torch.exp(self.log_scales)
+    def scales(self, index: torch.Tensor | None = None) -> torch.Tensor:
+        """Scales [G, 3] (``index [L]``: of those rows only, [L, 3])."""
+        return torch.exp(self.log_scales if index is None else self.log_scales[index])
 
     def opacities(self) -> torch.Tensor:
         """Opacity [G] without lifespans (what densification prunes on)."""
@@ -219,14 +220,21 @@ class DynamicScene(nn.Module):
         always visible). What the bundle stores and the Blender preview windows by."""
         return self.gauss_lifespan * torch.exp(self.lifespan_log_scale)
 
-    def opacities_at(self, t: float | None) -> torch.Tensor:
+    def opacities_at(self, t: float | None, index: torch.Tensor | None = None) -> torch.Tensor:
         """Opacity [G] at engine time ``t``: :meth:`opacities` times each Gaussian's lifespan
         window ``exp(-0.5 ((t - t_center) / lifespan)^2)`` (:meth:`lifespans`; 1 where the
-        lifespan is 0, and everywhere when ``t`` is None)."""
-        opacity = self.opacities()
+        lifespan is 0, and everywhere when ``t`` is None). ``index [L]``: of those rows only
+        ([L]; the same values as the full tensor's rows)."""
+        if index is None:
+            opacity = self.opacities()
+        else:
+            opacity = torch.sigmoid(self.opacity_logits[index])
         if t is None or not bool((self.gauss_lifespan > 0).any()):
             return opacity
-        return opacity * lifespan_window(float(t), self.gauss_t_center, self.lifespans())
+        if index is None:
+            return opacity * lifespan_window(float(t), self.gauss_t_center, self.lifespans())
+        life = self.gauss_lifespan[index] * torch.exp(self.lifespan_log_scale[index])
+        return opacity * lifespan_window(float(t), self.gauss_t_center[index], life)
 
     def sh(self) -> torch.Tensor:
         """[G, M, 3] spherical-harmonic coefficients."""
@@ -361,22 +369,27 @@ class DynamicScene(nn.Module):
         pos, rot = self.node_state(t)
         return node_transforms_dq(self.node_centers, pos, rot)
 
-    def deform(self, t: float, dq_nodes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def deform(self, t: float, dq_nodes: torch.Tensor | None = None,
+               index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Gaussian centres [G, 3] and rotations [G, 4] at time ``t``.
 
         ``dq_nodes [N, 8]``: the node transforms at ``t`` when the caller already has them
         (:meth:`node_dq`; the training step shares one evaluation between its terms).
+        ``index [L]``: deform only these rows (then ``[L, 3]`` / ``[L, 4]``; the training step
+        leaves out the Gaussians outside their lifespan window,
+        :func:`~engine.train.lifespan.shown_gaussians`).
         """
-        if FUSED_DEFORM and fused_available(self.means, self.quats, self.bind_w):
+        means, quats, bind_idx, bind_w = self.means, self.quats, self.bind_idx, self.bind_w
+        if index is not None:
+            means, quats, bind_idx, bind_w = means[index], quats[index], bind_idx[index], bind_w[index]
+        if FUSED_DEFORM and fused_available(means, quats, bind_w):
             # one Numba pass (forward + hand-written backward) instead of ~100 [G, K, 8]
             # torch ops; same values as the torch reference below (engine/train/fused.py)
             dq_nodes = self.node_dq(t) if dq_nodes is None else dq_nodes
-            return fused_deform(dq_nodes, self.bind_idx, self.bind_w, self.means, self.quats, normalize=True)
-        if dq_nodes is None:
-            dq = self.gaussian_transforms(t)
-        else:
-            dq = dq_blend(dq_nodes, self.bind_idx, self.bind_w)
-        return dq_apply_points(dq, self.means), dq_apply_rotations(dq, quat_normalize(self.quats))
+            return fused_deform(dq_nodes, bind_idx, bind_w, means, quats, normalize=True)
+        dq_nodes = self.node_dq(t) if dq_nodes is None else dq_nodes
+        dq = dq_blend(dq_nodes, bind_idx, bind_w)
+        return dq_apply_points(dq, means), dq_apply_rotations(dq, quat_normalize(quats))
 
     def deform_points(self, points: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, t: float,
                       dq_nodes: torch.Tensor | None = None) -> torch.Tensor:

@@ -137,13 +137,14 @@ class Objective:
 
     # ---------------------------------------------------------------- the loss
     def terms(self, model: DynamicScene, step: int, f: int, t: float, out, means_t: torch.Tensor,
-              quats_t: torch.Tensor, nodes_t):
+              quats_t: torch.Tensor, nodes_t, shown: torch.Tensor | None = None):
         """The loss terms of frame ``f`` at training step ``step``: ``(loss, metrics, out)``.
 
         ``out`` is the frame's render (its ``extra`` channel the dynamic score on a mask
         step), ``means_t [G, 3]`` / ``quats_t [G, 4]`` the deformed Gaussians, ``nodes_t`` =
         node positions [N, 3], rotations [N, 4] and dual quaternions [N, 8] at ``t``
-        (computed once by the trainer's ``_loss``).
+        (computed once by the trainer's ``_loss``). ``shown [L]``: the rows of the model that
+        ``means_t`` / ``quats_t`` are (``[L, ...]``; None = every Gaussian).
         """
         d, m, w = self.data, model, self.cfg.loss
         pos_t, rot_t, dq_nodes = nodes_t
@@ -179,7 +180,7 @@ class Objective:
                 terms["track"] = w.track * L.track_loss(uv, target_uv, torch.ones_like(sel, dtype=torch.bool),
                                                         float(d.width) / 100.0)
         if w.on_mask > 0 and step >= self.cfg.warmup_static_steps:
-            on_mask = self.on_mask(m, f, means_t)
+            on_mask = self.on_mask(m, f, t, means_t, dq_nodes, shown)
             if on_mask is not None:
                 terms["on_mask"] = w.on_mask * on_mask
         motion_on = step >= self.cfg.warmup_static_steps
@@ -216,7 +217,8 @@ class Objective:
         return loss, metrics, out
 
     # ---------------------------------------------------------------- dynamic Gaussians on the mask
-    def on_mask(self, model: DynamicScene, f: int, means_t: torch.Tensor) -> torch.Tensor | None:
+    def on_mask(self, model: DynamicScene, f: int, t: float, means_t: torch.Tensor, dq_nodes: torch.Tensor,
+                shown: torch.Tensor | None = None) -> torch.Tensor | None:
         """How far the dynamic Gaussians of frame ``f`` project outside its moving region
         (:func:`~engine.train.losses.on_mask_loss` of up to 4096 of them, drawn with the run's
         generator), or None (no split, no dynamic prior, no moving pixel in the frame).
@@ -228,7 +230,10 @@ class Objective:
         on an object at the middle frame are still on it at the ends). Rendered there they
         are floaters or hidden under the floor, where the photometric and mask terms cannot
         reach them; the distance map pulls them back onto the moving pixels of every frame from
-        as far away as they are. ``means_t [G, 3]``: the deformed centres at frame ``f``.
+        as far away as they are. ``means_t [G, 3]``: the deformed centres at frame ``f`` (time
+        ``t``, node transforms ``dq_nodes [N, 8]``); with ``shown [L]`` they are only those rows
+        (``[L, 3]``), and the drawn Gaussians are deformed here, shown or not (the pull is on
+        every dynamic Gaussian, inside its lifespan window or not, as without the cull).
         """
         d, m = self.data, model
         if not m.is_split or d.fg is None:
@@ -244,7 +249,8 @@ class Objective:
             return None
         if len(dyn) > 4096:
             dyn = dyn[torch.randperm(len(dyn), generator=self.gen)[:4096].to(dyn.device)]
-        uv, z = project(d.K[f], d.w2c[f], means_t[dyn])
+        centres = means_t[dyn] if shown is None else m.deform(t, dq_nodes=dq_nodes, index=dyn)[0]
+        uv, z = project(d.K[f], d.w2c[f], centres)
         uv = torch.where((z > 0).unsqueeze(-1), uv, uv.new_tensor(-1.0))  # behind the camera: not scored
         return L.on_mask_loss(uv, self.mask_dist[f], float(d.width) / 100.0)
 

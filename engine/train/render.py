@@ -15,26 +15,30 @@ from ..raster.sh import sh_to_colors
 FUSED_SH = True
 
 
-def scene_colors(model, means: torch.Tensor, w2c: torch.Tensor) -> torch.Tensor:
+def scene_colors(model, means: torch.Tensor, w2c: torch.Tensor, index: torch.Tensor | None = None) -> torch.Tensor:
     """The 3DGS colours ``[G, 3]`` of ``model``'s SH at deformed ``means [G, 3]`` seen from
     ``w2c [4, 4]`` -- what :func:`render_scene` computes from the SH -- through the fused
     CPU kernel for degrees 0-1 (same values to float rounding), else
-    :func:`engine.raster.sh.sh_to_colors`."""
+    :func:`engine.raster.sh.sh_to_colors`. ``index [L]``: the rows of the model ``means``
+    belong to (then ``means [L, 3]`` -> ``[L, 3]``)."""
+    sh_dc, sh_rest = model.sh_dc, model.sh_rest
+    if index is not None:
+        sh_dc, sh_rest = sh_dc[index], sh_rest[index]
     if FUSED_SH:
         try:
             from .fused_sh import fused_sh_available, fused_sh_colors
         except ImportError:  # no numba
             pass
         else:
-            if fused_sh_available(model.sh_degree, means, model.sh_dc, model.sh_rest):
-                return fused_sh_colors(means, model.sh_dc, model.sh_rest, model.sh_degree, w2c)
-    return sh_to_colors(model.sh(), model.sh_degree, means, w2c)
+            if fused_sh_available(model.sh_degree, means, sh_dc, sh_rest):
+                return fused_sh_colors(means, sh_dc, sh_rest, model.sh_degree, w2c)
+    return sh_to_colors(torch.cat([sh_dc, sh_rest], dim=1), model.sh_degree, means, w2c)
 
 
 def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
                  width: int, height: int, colors: torch.Tensor | None = None, backend: str = "auto",
                  background: torch.Tensor | None = None, extra: torch.Tensor | None = None,
-                 time: float | None = None):
+                 time: float | None = None, index: torch.Tensor | None = None):
     """Render deformed Gaussians of ``model`` from one camera.
 
     Parameters
@@ -56,13 +60,20 @@ def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tenso
         time (:meth:`~engine.train.model.DynamicScene.opacities_at`); None = every Gaussian
         at full opacity.
 
+    index : (L,) long, optional
+        Render only these rows of the model (:func:`~engine.train.lifespan.shown_gaussians`):
+        ``means`` / ``quats`` / ``colors`` / ``extra`` are then ``[L, ...]``, and so are the
+        output's ``radii`` and ``means2d``.
+
     Returns
     -------
     raster.RenderOutput with ``rgb [H, W, 3]``, ``alpha [H, W, 1]``, ``depth [H, W, 1]``,
     ``radii [G]`` and ``means2d [G, 2]`` (its ``.grad`` feeds densification).
     """
-    kwargs = dict(means=means, quats=quats, scales=model.scales(), opacities=model.opacities_at(time), w2c=w2c, K=K,
+    scales, opacities = model.scales(index), model.opacities_at(time, index)
+    kwargs = dict(means=means, quats=quats, scales=scales, opacities=opacities, w2c=w2c, K=K,
                   width=width, height=height, background=background, backend=backend, extra=extra)
     if colors is not None:
         return raster.render(colors=colors, **kwargs)
-    return raster.render(sh=model.sh(), sh_degree=model.sh_degree, **kwargs)
+    sh = model.sh() if index is None else torch.cat([model.sh_dc[index], model.sh_rest[index]], dim=1)
+    return raster.render(sh=sh, sh_degree=model.sh_degree, **kwargs)

@@ -73,7 +73,8 @@ class GaussianDensifyStrategy:
         self.grad_count = state["grad_count"].to(self.device)
 
     @torch.no_grad()
-    def step_post_backward(self, step: int, out, width: int, height: int) -> None:
+    def step_post_backward(self, step: int, out, width: int, height: int,
+                           index: torch.Tensor | None = None) -> None:
         """Add this step's view-space gradient norms.
 
         Parameters
@@ -83,6 +84,9 @@ class GaussianDensifyStrategy:
         out : RenderOutput
             The step's render: ``grad2d()`` [G, 2] pixel gradients of the means (None where
             the backend keeps none) and ``radii`` (> 0: visible).
+        index : [L] long, optional
+            The model rows ``out`` rendered (then its ``radii`` / pixel gradients are ``[L]``);
+            the rows left out were not visible.
         """
         cfg = self.cfg
         grad2d = out.grad2d()
@@ -93,8 +97,12 @@ class GaussianDensifyStrategy:
             gn = gn * 0.5 * max(width, height)
             # dense updates instead of boolean-mask gather/scatter, same values:
             # invisible Gaussians add exactly 0
-            self.grad_accum += torch.where(vis, gn, 0.0)
-            self.grad_count += vis
+            if index is None:
+                self.grad_accum += torch.where(vis, gn, 0.0)
+                self.grad_count += vis
+            else:
+                self.grad_accum.index_add_(0, index, torch.where(vis, gn, 0.0))
+                self.grad_count.index_add_(0, index, vis.to(self.grad_count.dtype))
 
     @torch.no_grad()
     def densify(self, model: DynamicScene, opt: torch.optim.Adam, gen: torch.Generator) -> None:

@@ -31,7 +31,7 @@ from . import losses as L
 from .config import TrainConfig
 from .data import TrainingData
 from .export import bundle_arrays, bundle_cameras
-from .lifespan import camera_translates, clamp_lifespans_
+from .lifespan import camera_translates, clamp_lifespans_, shown_gaussians
 from .objective import Objective
 from .param_edit import make_optimizer  # noqa: F401  (re-exported)
 from .phases import no_phase
@@ -41,6 +41,10 @@ from .strategy import GaussianDensifyStrategy, NodeDensifyStrategy
 from .warmup import warm_kernels
 
 CHECKPOINT_NAME = "checkpoint.pt"
+
+#: each step renders only the Gaussians its time can show (lifespan.shown_gaussians; tests
+#: switch it off to compare)
+CULL_HIDDEN = True
 
 # build_model / initial_gaussians / trajectory_fg_score re-exported: the model's
 # construction lives in init_model.py
@@ -150,21 +154,29 @@ class Trainer:
         ph = self.phases or no_phase
         t = float(d.times[f])
         with ph("deform"):
+            # only the Gaussians this time can show (None: all): with lifespans most moving ones
+            # of a long clip are outside their window and would change no pixel (lifespan.py)
+            shown = shown_gaussians(m, t) if CULL_HIDDEN else None
             # node state at t once per step: the deformation, the track term and ARAP share it
             pos_t, rot_t = m.node_state(t)
             dq_nodes = node_transforms_dq(m.node_centers, pos_t, rot_t)
-            means_t, quats_t = m.deform(t, dq_nodes=dq_nodes)
+            means_t, quats_t = m.deform(t, dq_nodes=dq_nodes, index=shown)
         with ph("sh"):  # the colour raster.render would compute from sh=..., timed on its own
-            colors = scene_colors(m, means_t, d.w2c[f])
+            colors = scene_colors(m, means_t, d.w2c[f], index=shown)
         # the mask term (every 4th step) renders the Gaussians' dynamic score as an extra
         # channel of the colour pass instead of a second render
         mask_now = w.mask > 0 and d.fg is not None and self.step % 4 == 0
+        extra = None
+        if mask_now:
+            extra = self.objective.dynamic_score(m)
+            extra = extra if shown is None else extra[shown]
         with ph("raster_fwd"):
             out = render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, colors=colors,
-                               backend=self.cfg.backend, extra=self.objective.dynamic_score(m) if mask_now else None,
-                               time=t)
+                               backend=self.cfg.backend, extra=extra, time=t, index=shown)
         with ph("losses"):
-            return self.objective.terms(m, self.step, f, t, out, means_t, quats_t, (pos_t, rot_t, dq_nodes))
+            loss, metrics, out = self.objective.terms(m, self.step, f, t, out, means_t, quats_t,
+                                                      (pos_t, rot_t, dq_nodes), shown=shown)
+            return loss, metrics, out, shown
 
     def _static_motion(self, pos_t: torch.Tensor, rot_t: torch.Tensor, state_t1=None) -> torch.Tensor:
         """The static-motion term now (:meth:`Objective.static_motion`)."""
@@ -256,7 +268,7 @@ class Trainer:
                 f = int(train_idx[torch.randint(0, len(train_idx), (1,), generator=self.gen)])
                 self._lr_schedule()
                 ph = self.phases or no_phase
-                loss, metrics, out = self._loss(f)
+                loss, metrics, out, shown = self._loss(f)
                 self.opt.zero_grad(set_to_none=True)
                 with ph("backward"):
                     loss.backward()
@@ -271,7 +283,7 @@ class Trainer:
                     self.opt.step()
                     clamp_lifespans_(self.model, cfg)
                 with torch.no_grad(), ph("densify_stats"):
-                    self.gaussian_strategy.step_post_backward(self.step, out, d.width, d.height)
+                    self.gaussian_strategy.step_post_backward(self.step, out, d.width, d.height, index=shown)
                 self.step += 1
                 # the step's frame draw is done: a checkpoint from here on stores the sampler
                 # state after it, so a resume draws the next step's frame, not this one again
@@ -329,9 +341,10 @@ class Trainer:
     def render_frame(self, f: int, t: float | None = None):
         d, m = self.data, self.model
         t = float(d.times[f]) if t is None else t
-        means_t, quats_t = m.deform(t)
+        shown = shown_gaussians(m, t) if CULL_HIDDEN else None
+        means_t, quats_t = m.deform(t, index=shown)
         return render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, backend=self.cfg.backend,
-                            time=t)
+                            time=t, index=shown)
 
     @torch.no_grad()
     def evaluate(self, idx: torch.Tensor | None = None) -> dict:

@@ -290,3 +290,63 @@ def test_a_long_clip_seeds_as_many_moving_gaussians_per_frame_as_a_short_one():
     m_off = build_model(data, make_nodes(truth), off, torch.Generator().manual_seed(0))
     assert gaussian_budget(off, m_off, frames) == 1000
     assert int(m_off.gauss_dyn.sum()) < 0.3 * n_short
+
+
+def test_a_step_renders_only_the_gaussians_its_time_can_show_with_the_same_gradients(tmp_path, monkeypatch):
+    """The cull (lifespan.shown_gaussians) leaves out only Gaussians the rasteriser would skip:
+    one training step with it gives every parameter the gradient, and densification the
+    statistics, that the step without it gives; the same frame renders the same picture."""
+    from engine.train import trainer as T
+    from engine.train.lifespan import ALPHA_MIN, shown_gaussians
+
+    data, truth = make_scene(fixed_camera=True)
+    cfg = _cfg(steps=24, warmup_static_steps=0, checkpoint_every=0, densify_from=0, densify_until=100,
+               lifespan_frames=0.6)
+    grads, stats, renders, shares = {}, {}, {}, []
+    f = int(data.train_idx[len(data.train_idx) // 2])
+    for cull in (True, False):
+        monkeypatch.setattr(T, "CULL_HIDDEN", cull)
+        trainer = T.Trainer(data, make_nodes(truth), cfg, tmp_path / f"run{cull}")
+        m = trainer.model
+        with torch.no_grad():  # initial Gaussians are round, whose rotation gradient is exactly 0
+            m.log_scales.add_(0.3 * torch.randn(m.log_scales.shape, generator=torch.Generator().manual_seed(1)))
+        for g in data.train_idx.tolist():
+            o = m.opacities_at(float(data.times[g])).detach()
+            shown = shown_gaussians(m, float(data.times[g]))
+            assert shown is not None  # short lives: most moving Gaussians are hidden at any one time
+            assert int((o >= ALPHA_MIN).sum()) == len(shown) and bool((o[shown] >= ALPHA_MIN).all())
+            shares.append(len(shown) / m.num_gaussians)
+        trainer.step = 4  # a mask step (every 4th): the dynamic score channel and the on-mask pull
+        loss, metrics, out, shown = trainer._loss(f)
+        assert (shown is not None) == cull and {"mask", "on_mask", "track"} <= set(metrics)
+        trainer.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        grads[cull] = {n: p.grad.clone() for n, p in m.named_parameters() if p.grad is not None}
+        trainer.gaussian_strategy.step_post_backward(trainer.step, out, data.width, data.height, index=shown)
+        stats[cull] = (trainer.gaussian_strategy.grad_accum.clone(), trainer.gaussian_strategy.grad_count.clone())
+        renders[cull] = trainer.render_frame(f)
+    assert max(shares) < 0.7
+    assert grads[True].keys() == grads[False].keys() and {"means", "quats", "pos_keys"} <= grads[True].keys()
+    for name, g in grads[False].items():
+        assert float(g.abs().max()) > 0, name
+        torch.testing.assert_close(grads[True][name], g, atol=1e-7 + 1e-5 * float(g.abs().max()), rtol=1e-4,
+                                   msg=name)
+    assert int(stats[False][1].sum()) > 0
+    torch.testing.assert_close(stats[True][1], stats[False][1], atol=0, rtol=0)  # the same Gaussians seen
+    torch.testing.assert_close(stats[True][0], stats[False][0], atol=1e-7, rtol=1e-4)
+    assert renders[True].radii.shape[0] < renders[False].radii.shape[0]
+    torch.testing.assert_close(renders[True].rgb, renders[False].rgb, atol=1e-6, rtol=0)
+
+
+def test_shown_gaussians_is_none_without_lifespans_or_when_nearly_all_are_shown():
+    from engine.train.lifespan import shown_gaussians
+
+    data, truth = make_scene(fixed_camera=True)
+    t = float(data.times[data.train_idx[0]])
+    off = build_model(data, make_nodes(truth), _cfg(lifespan="off"), torch.Generator().manual_seed(0))
+    assert shown_gaussians(off, t) is None
+    model = build_model(data, make_nodes(truth), _cfg(lifespan_frames=100.0), torch.Generator().manual_seed(0))
+    assert shown_gaussians(model, t) is None  # lives as long as the clip: all shown
+    with torch.no_grad():
+        model.opacity_logits[::2] = -20.0  # below the floor at any time
+    torch.testing.assert_close(shown_gaussians(model, t), torch.arange(1, model.num_gaussians, 2))

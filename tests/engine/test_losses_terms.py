@@ -181,7 +181,7 @@ def test_every_trainable_parameter_gets_a_gradient_in_a_step(tmp_path, scene, mo
         m.log_scales.add_(0.3 * torch.randn(m.log_scales.shape, generator=torch.Generator().manual_seed(1)))
     f = int(data.train_idx[0])
     trainer.step = 4  # a mask step (every 4th), past the warm-up
-    loss, metrics, _ = trainer._loss(f)
+    loss, metrics, _, _ = trainer._loss(f)
     assert {"rgb", "mask", "depth", "arap", "static"} <= set(metrics)
     assert ("on_mask" in metrics) == split  # the dynamic Gaussians exist with the split only
     if motion != "mlp":
