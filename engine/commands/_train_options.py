@@ -9,7 +9,8 @@ def add_clip_options(parser):
     parser.add_argument("--out", required=True, help="result bundle folder")
     parser.add_argument("--preset", default="preview", choices=("preview", "standard", "high"),
                         help="size/steps preset (default preview: minutes on a 2-core CPU)")
-    parser.add_argument("--config", help="JSON file with TrainConfig overrides (keys as in scene.json 'config')")
+    parser.add_argument("--config", help="TrainConfig overrides (keys as in scene.json 'config'): a JSON file, or "
+                                         "the JSON object itself, e.g. '{\"max_gaussians\": 60000}'")
     parser.add_argument("--width", type=int, help="training width in pixels (preset default)")
     parser.add_argument("--steps", type=int, help="training steps (preset default)")
     parser.add_argument("--nodes", type=int, dest="num_nodes", help="node budget (preset default)")
@@ -70,14 +71,17 @@ def config_from_args(args):
 
     overrides = {}
     if args.config:
+        # an object written on the command line (the docs' one-off overrides) or a file's path
+        inline = args.config.lstrip().startswith("{")
+        source = "--config" if inline else args.config
         try:
-            overrides = json.loads(Path(args.config).read_text(encoding="utf-8"))
+            overrides = json.loads(args.config if inline else Path(args.config).read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
-            raise InputError(f"cannot read config JSON ({exc})", args.config, "pass a JSON object of TrainConfig keys")
+            raise InputError(f"cannot read config JSON ({exc})", source, "pass a JSON object of TrainConfig keys")
         if not isinstance(overrides, dict):
-            raise InputError("config must be a JSON object", args.config, "e.g. {\"steps\": 2000}")
-        # validated on its own first, so its errors name the file and the key
-        TrainConfig.from_dict({**PRESETS.get(args.preset, {}), **overrides, "preset": args.preset}, args.config)
+            raise InputError("config must be a JSON object", source, "e.g. {\"steps\": 2000}")
+        # validated on its own first, so its errors name the file (or --config) and the key
+        TrainConfig.from_dict({**PRESETS.get(args.preset, {}), **overrides, "preset": args.preset}, source)
     options = {}
     for key in ("width", "steps", "num_nodes", "num_keys", "init", "motion", "motion_init", "seed", "device", "backend",
                 "holdout", "lifespan"):

@@ -230,6 +230,8 @@ CASES = {
                              "gaussians_per_frame"),
     "config float for int": (lambda t: _train(t, t / "x", "--config", _cfg(t, {"steps": 2.5})), "steps"),
     "config names the file": (lambda t: _train(t, t / "x", "--config", _cfg(t, {"seed": "one"})), "cfg.json"),
+    "inline config unknown key": (lambda t: _train(t, t / "x", "--config", '{"stepz": 3}'), "stepz"),
+    "inline config broken": (lambda t: _train(t, t / "x", "--config", '{"steps": 3'), "--config"),
     "--steps 1e12": (lambda t: _train(t, t / "x", "--steps", str(10**12)), "steps"),
     "--threads -1": (lambda t: ["version", "--threads", "-1"], "--threads"),
     # ------------------------------------------------------------- output folders

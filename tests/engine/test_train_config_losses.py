@@ -138,3 +138,17 @@ def test_depth_loss_masked_mean_matches_gathered_mean():
     (g1,) = torch.autograd.grad(loss, pred)
     (g2,) = torch.autograd.grad(ref, pred)
     assert torch.allclose(g1, g2, rtol=1e-5, atol=1e-9)
+
+
+def test_config_overrides_come_from_a_file_or_the_command_line_itself(tmp_path):
+    import argparse
+    import json
+
+    from engine.commands._train_options import config_from_args
+
+    path = tmp_path / "over.json"
+    path.write_text(json.dumps({"max_gaussians": 12345, "loss": {"on_mask": 0.1}}))
+    for given in (str(path), ' {"max_gaussians": 12345, "loss": {"on_mask": 0.1}}'):
+        cfg = config_from_args(argparse.Namespace(preset="preview", config=given))
+        assert cfg.max_gaussians == 12345 and cfg.loss.on_mask == 0.1
+    assert config_from_args(argparse.Namespace(preset="preview", config=None)).max_gaussians != 12345
