@@ -14,6 +14,7 @@ Outside ``[t_0, t_{K−1}]`` the curve is held constant at the end key (Blender'
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 
@@ -187,3 +188,36 @@ def hermite_fit(key_times: torch.Tensor, t: torch.Tensor, samples: torch.Tensor,
     M = A + smoothness * (D1.T @ D1) + curvature * (D2.T @ D2) + eps[..., None, None] * eye
     rhs = rhs + eps[..., None, None] * fallback
     return torch.linalg.solve(M, rhs)
+
+
+def catmull_rom_basis(key_times: np.ndarray, t: float) -> np.ndarray:
+    """Weights ``b [K]`` (float64) of the keys in the Catmull-Rom Hermite spline at ``t``.
+
+    Mirrors :func:`hermite_eval` with :func:`catmull_rom_tangents` written as a fixed linear
+    map of the keys, ``x(t) = Σ_k b_k P_k``: ``t`` clamped to the key range (constant
+    extrapolation), segment ``seg`` with ``t_seg <= t < t_seg+1``, and tangents
+    ``M_k = Σ_j C_kj P_j`` (one-sided at the ends, central inside).
+    """
+    k = key_times.shape[0]
+    b = np.zeros(k)
+    if k == 1:
+        b[0] = 1.0
+        return b
+    tc = min(max(t, key_times[0]), key_times[-1])
+    seg = min(max(int(np.searchsorted(key_times, tc, side="right")) - 1, 0), k - 2)
+    t0, dt = key_times[seg], key_times[seg + 1] - key_times[seg]
+    tau = (tc - t0) / dt
+    t2, t3 = tau * tau, tau * tau * tau
+    h00, h10, h01, h11 = 2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + tau, -2 * t3 + 3 * t2, t3 - t2
+
+    def tangent_row(i):  # C[i] : M_i = Σ_j C[i, j] P_j
+        row = np.zeros(k)
+        lo, hi = (0, 1) if i == 0 else ((k - 2, k - 1) if i == k - 1 else (i - 1, i + 1))
+        row[hi] += 1.0 / (key_times[hi] - key_times[lo])
+        row[lo] -= 1.0 / (key_times[hi] - key_times[lo])
+        return row
+
+    b[seg] += h00
+    b[seg + 1] += h01
+    b += dt * (h10 * tangent_row(seg) + h11 * tangent_row(seg + 1))
+    return b

@@ -19,7 +19,6 @@ Node motion comes from one of three models (``TrainConfig.motion``):
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
@@ -28,10 +27,11 @@ import torch.nn as nn
 
 from ..geometry.binding import bind_gaussians
 from ..geometry.dualquat import dq_apply_points, dq_apply_rotations, dq_blend, node_transforms_dq
-from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_eval_quat
+from ..geometry.hermite import catmull_rom_basis, catmull_rom_tangents, hermite_eval, hermite_eval_quat
 from ..geometry.quaternion import quat_identity, quat_normalize
 from .fused import fused_available, fused_deform
 from .lifespan import lifespan_window
+from .motion_mlp import DeformMLP, positional_encoding  # noqa: F401 (re-exported)
 from .split import bind_within_class, knn_rbf
 
 # Use the fused CPU deformation (engine/train/fused.py) where it applies; the torch
@@ -44,78 +44,6 @@ SH_C0 = 0.28209479177387814
 def inverse_sigmoid(x: torch.Tensor) -> torch.Tensor:
     x = x.clamp(1e-6, 1 - 1e-6)
     return torch.log(x / (1 - x))
-
-
-def positional_encoding(x: torch.Tensor, num_freqs: int) -> torch.Tensor:
-    """NeRF positional encoding: ``[..., D] -> [..., D (1 + 2 num_freqs)]``."""
-    freqs = (2.0 ** torch.arange(num_freqs, device=x.device, dtype=x.dtype)) * math.pi
-    xf = x[..., None] * freqs
-    return torch.cat([x, torch.sin(xf).flatten(-2), torch.cos(xf).flatten(-2)], dim=-1)
-
-
-def _catmull_rom_basis(key_times: np.ndarray, t: float) -> np.ndarray:
-    """Weights ``b [K]`` (float64) of the keys in the Catmull-Rom Hermite spline at ``t``.
-
-    Mirrors :func:`~engine.geometry.hermite.hermite_eval` with
-    :func:`~engine.geometry.hermite.catmull_rom_tangents`: ``t`` clamped to the key range
-    (constant extrapolation), segment ``seg`` with ``t_seg <= t < t_seg+1``, and tangents
-    ``M_k = Σ_j C_kj P_j`` (one-sided at the ends, central inside).
-    """
-    k = key_times.shape[0]
-    b = np.zeros(k)
-    if k == 1:
-        b[0] = 1.0
-        return b
-    tc = min(max(t, key_times[0]), key_times[-1])
-    seg = min(max(int(np.searchsorted(key_times, tc, side="right")) - 1, 0), k - 2)
-    t0, dt = key_times[seg], key_times[seg + 1] - key_times[seg]
-    tau = (tc - t0) / dt
-    t2, t3 = tau * tau, tau * tau * tau
-    h00, h10, h01, h11 = 2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + tau, -2 * t3 + 3 * t2, t3 - t2
-
-    def tangent_row(i):  # C[i] : M_i = Σ_j C[i, j] P_j
-        row = np.zeros(k)
-        lo, hi = (0, 1) if i == 0 else ((k - 2, k - 1) if i == k - 1 else (i - 1, i + 1))
-        row[hi] += 1.0 / (key_times[hi] - key_times[lo])
-        row[lo] -= 1.0 / (key_times[hi] - key_times[lo])
-        return row
-
-    b[seg] += h00
-    b[seg + 1] += h01
-    b += dt * (h10 * tangent_row(seg) + h11 * tangent_row(seg + 1))
-    return b
-
-
-class DeformMLP(nn.Module):
-    """SC-GS-style node deformation field: ``(c_i, t) -> (Δp_i, Δq_i)``.
-
-    Input positions are normalised by the scene extent; the last layer starts at zero,
-    so the field starts as the identity motion.
-    """
-
-    def __init__(self, extent: float, width: int = 128, depth: int = 4, pos_freqs: int = 6, time_freqs: int = 6):
-        super().__init__()
-        self.extent = float(extent)
-        self.pos_freqs, self.time_freqs = pos_freqs, time_freqs
-        dim_in = 3 * (1 + 2 * pos_freqs) + (1 + 2 * time_freqs)
-        layers: list[nn.Module] = []
-        for i in range(depth):
-            layers += [nn.Linear(dim_in if i == 0 else width, width), nn.ReLU(inplace=True)]
-        self.trunk = nn.Sequential(*layers)
-        self.head = nn.Linear(width, 7)
-        nn.init.zeros_(self.head.weight)
-        nn.init.zeros_(self.head.bias)
-
-    def forward(self, centers: torch.Tensor, t: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """centers [N, 3], scalar t -> (Δp [N, 3], quaternion [N, 4] wxyz)."""
-        n = centers.shape[0]
-        tt = torch.full((n, 1), float(t), device=centers.device, dtype=centers.dtype)
-        h = torch.cat([positional_encoding(centers / self.extent, self.pos_freqs),
-                       positional_encoding(tt, self.time_freqs)], dim=-1)
-        out = self.head(self.trunk(h))
-        dq = out[:, 3:]
-        q = quat_normalize(torch.cat([1.0 + dq[:, :1], dq[:, 1:]], dim=-1))
-        return out[:, :3] * self.extent, q
 
 
 class DynamicScene(nn.Module):
@@ -307,7 +235,7 @@ class DynamicScene(nn.Module):
         cache = self.__dict__.setdefault("_basis_cache", {})
         hit = cache.get(key)
         if hit is None:
-            b = _catmull_rom_basis(kt.detach().cpu().double().numpy(), float(t))
+            b = catmull_rom_basis(kt.detach().cpu().double().numpy(), float(t))
             nz = np.nonzero(b)[0]
             lo, hi = (int(nz[0]), int(nz[-1]) + 1) if len(nz) else (0, 1)
             # at most 4 keys carry weight (the segment's ends and their tangent neighbours)
@@ -347,7 +275,7 @@ class DynamicScene(nn.Module):
         sel = (lambda x: x) if nodes is None else (lambda x: x[nodes])  # noqa: E731
         if self.mlp is None and getattr(self, "explicit_tangents", None) is None and times:
             kt = self.key_times.detach().cpu().double().numpy()
-            basis = torch.from_numpy(np.stack([_catmull_rom_basis(kt, t) for t in times])).to(self.pos_keys)
+            basis = torch.from_numpy(np.stack([catmull_rom_basis(kt, t) for t in times])).to(self.pos_keys)
             pos = torch.einsum("tk,nkc->ntc", basis, sel(self.pos_keys))
             return pos, quat_normalize(torch.einsum("tk,nkc->ntc", basis, sel(self.rot_keys)))
         states = [self.node_state(t) for t in times]

@@ -6,8 +6,8 @@ checkpoints are written atomically every ``checkpoint_every`` steps and on SIGIN
 SIGTERM (the CLI turns both into ``KeyboardInterrupt``); ``resume=True`` continues from
 the last checkpoint and reproduces the uninterrupted run (CPU, same seed).
 
-The trainer keeps the loop, the learning-rate schedule, checkpoint / resume, evaluation
-and export. The loss is :class:`engine.train.objective.Objective`'s; densification is done
+The trainer keeps the loop, the learning-rate schedule, checkpoint / resume and export;
+scoring its frames is :mod:`engine.train.evaluation`'s. The loss is :class:`engine.train.objective.Objective`'s; densification is done
 by the strategies of :mod:`engine.train.strategy`, called at fixed points of a step; the
 optimiser and its row surgery are :mod:`engine.train.param_edit`'s.
 """
@@ -18,7 +18,6 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from .. import bundle as B
@@ -27,10 +26,10 @@ from ..fsutil import atomic_path
 from ..geometry.dualquat import node_transforms_dq
 from ..protocol import Reporter
 from . import checkpoint as CK
-from . import losses as L
 from .config import TrainConfig
 from .data import TrainingData
 from .export import bundle_arrays, bundle_cameras
+from .evaluation import evaluate_frames, quality_lines, render_frame, spread_sample
 from .lifespan import camera_translates, clamp_lifespans_, shown_gaussians
 from .objective import Objective
 from .param_edit import make_optimizer  # noqa: F401  (re-exported)
@@ -149,7 +148,9 @@ class Trainer:
                 group["lr"] = lrs[group["name"]]
 
     # ---------------------------------------------------------------- one step
-    def _loss(self, f: int) -> tuple[torch.Tensor, dict]:
+    def _loss(self, f: int):
+        """One step's ``(loss, metrics, render, shown)`` on training frame ``f``: ``shown [L]``
+        the model rows the render holds (None: all; :func:`shown_gaussians`)."""
         d, m, w = self.data, self.model, self.cfg.loss
         ph = self.phases or no_phase
         t = float(d.times[f])
@@ -337,53 +338,14 @@ class Trainer:
             signal.signal(sig, old)
 
     # ---------------------------------------------------------------- evaluation
-    @torch.no_grad()
     def render_frame(self, f: int, t: float | None = None):
-        d, m = self.data, self.model
-        t = float(d.times[f]) if t is None else t
-        shown = shown_gaussians(m, t) if CULL_HIDDEN else None
-        means_t, quats_t = m.deform(t, index=shown)
-        return render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, backend=self.cfg.backend,
-                            time=t, index=shown)
+        """Frame ``f`` rendered now (:func:`engine.train.evaluation.render_frame`)."""
+        return render_frame(self.model, self.data, f, t, self.cfg.backend, cull=CULL_HIDDEN)
 
-    @torch.no_grad()
     def evaluate(self, idx: torch.Tensor | None = None) -> dict:
         """PSNR / SSIM (and masked PSNR where a fg prior exists) on frames ``idx`` (default: val)."""
-        d = self.data
-        idx = d.val_idx if idx is None else idx
-        if len(idx) == 0:
-            return {"frames": 0}
-        ps, ss, mps = [], [], []
-        for f in idx.tolist():
-            out = self.render_frame(f)
-            pred = out.rgb.clamp(0, 1)
-            ps.append(float(L.psnr(pred, d.images[f])))
-            ss.append(float(L.ssim(pred, d.images[f])))
-            if d.fg is not None and float(d.fg[f].sum()) > 16:
-                mps.append(float(L.psnr(pred, d.images[f], (d.fg[f] > 0.5).to(pred.dtype).unsqueeze(-1))))
-        res = {"frames": len(ps), "psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
-        if mps:
-            res["masked_psnr"] = float(np.mean(mps))
-        return res
-
-    def _train_sample(self, at_most: int = 30) -> torch.Tensor:
-        """Up to ``at_most`` training frames spread over the clip (the training-view score)."""
-        idx = self.data.train_idx
-        if len(idx) <= at_most:
-            return idx
-        return idx[torch.linspace(0, len(idx) - 1, at_most).round().long()]
-
-    def _log_quality(self, metrics: dict) -> None:
-        """One line per split: whole-image PSNR beside the still plate's."""
-        plate = metrics.get("still_plate") or {}
-        for key, split, name in (("eval_train", "train", "training frames"), ("eval", "val", "held-out frames")):
-            ev = metrics.get(key) or {}
-            if not ev.get("frames"):
-                continue
-            line = f"{name}: PSNR {ev['psnr']:.2f} dB over {ev['frames']}"
-            if plate.get(split) is not None:
-                line += f" (still plate {plate[split]:.2f} dB, {ev['psnr'] - plate[split]:+.2f})"
-            self.reporter.log(line)
+        idx = self.data.val_idx if idx is None else idx
+        return evaluate_frames(self.model, self.data, idx, self.cfg.backend, cull=CULL_HIDDEN)
 
     # ---------------------------------------------------------------- export
     def export_bundle(self, metrics: dict | None = None) -> Path:
@@ -418,11 +380,13 @@ class Trainer:
         initial = self.evaluate() if self.step == 0 else self.initial_eval
         self.initial_eval = initial
         self.train()
-        metrics = {"eval_init": initial, "eval": self.evaluate(), "eval_train": self.evaluate(self._train_sample())}
+        metrics = {"eval_init": initial, "eval": self.evaluate(),
+                   "eval_train": self.evaluate(spread_sample(self.data.train_idx))}
         metrics["iterations_per_s"] = round(self.step / max(self.train_seconds, 1e-9), 3)
         if self.still_plate is not None:
             metrics["still_plate"] = self.still_plate
-        self._log_quality(metrics)
+        for line in quality_lines(metrics):
+            self.reporter.log(line)
         path = self.export_bundle(metrics)
         CK.discard(self.ckpt_path)  # finished: a later --resume must not retrain over the bundle
         return {"bundle": str(path), "steps": self.step, "gaussians": self.model.num_gaussians,

@@ -127,7 +127,7 @@ def test_trainer_terms_are_the_same_fused_or_not(tmp_path, monkeypatch, static_i
         with torch.no_grad():
             tr.model.pos_keys.add_(0.02 * torch.randn(tr.model.pos_keys.shape, generator=torch.Generator().manual_seed(0)))
         tr.step = 5
-        loss, metrics, _ = tr._loss(int(data.train_idx[1]))
+        loss, metrics, _, _ = tr._loss(int(data.train_idx[1]))
         loss.backward()
         res[fused] = (metrics, tr.model.pos_keys.grad.clone(), tr.model.rot_keys.grad.clone())
     (m1, gp1, gq1), (m0, gp0, gq0) = res[True], res[False]

@@ -184,3 +184,15 @@ def test_fit_weights_ignore_outliers_and_smoothness_holds_unobserved_keys_still(
     assert torch.isfinite(still).all()
     assert still[0, 2:, 0].sub(0.35).abs().max() < 0.25
     assert free[0, 2:, 0].sub(0.35).abs().max() > 0.5  # without it the trend overshoots
+
+
+def test_catmull_rom_basis_is_the_catmull_rom_spline_as_weights_of_its_keys():
+    gen = torch.Generator().manual_seed(3)
+    key_times = torch.tensor([0.0, 0.15, 0.4, 0.55, 1.0], dtype=torch.float64)
+    keys = torch.randn(5, 3, generator=gen, dtype=torch.float64)
+    tangents = hermite.catmull_rom_tangents(key_times, keys)
+    for t in (-0.2, 0.0, 0.1, 0.15, 0.47, 0.9, 1.0, 1.3):
+        b = hermite.catmull_rom_basis(key_times.numpy(), t)
+        want = hermite.hermite_eval(key_times, keys, tangents, torch.tensor([t], dtype=torch.float64))[0]
+        np.testing.assert_allclose(b @ keys.numpy(), want.numpy(), atol=1e-12)
+    assert hermite.catmull_rom_basis(np.array([0.3]), 0.7).tolist() == [1.0]
