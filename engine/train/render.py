@@ -59,7 +59,6 @@ def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tenso
         Engine time of the render: Gaussians with a lifespan are windowed around their own
         time (:meth:`~engine.train.model.DynamicScene.opacities_at`); None = every Gaussian
         at full opacity.
-
     index : (L,) long, optional
         Render only these rows of the model (:func:`~engine.train.lifespan.shown_gaussians`):
         ``means`` / ``quats`` / ``colors`` / ``extra`` are then ``[L, ...]``, and so are the
