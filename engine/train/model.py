@@ -19,7 +19,6 @@ Node motion comes from one of three models (``TrainConfig.motion``):
 
 from __future__ import annotations
 
-
 import numpy as np
 
 import torch
@@ -139,34 +138,35 @@ class DynamicScene(nn.Module):
         """Scales [G, 3] (``index [L]``: of those rows only, [L, 3])."""
         return torch.exp(self.log_scales if index is None else self.log_scales[index])
 
-    def opacities(self) -> torch.Tensor:
-        """Opacity [G] without lifespans (what densification prunes on)."""
-        return torch.sigmoid(self.opacity_logits)
+    def opacities(self, index: torch.Tensor | None = None) -> torch.Tensor:
+        """Opacity [G] without lifespans (what densification prunes on; ``index [L]``: of those
+        rows only)."""
+        return torch.sigmoid(self.opacity_logits if index is None else self.opacity_logits[index])
 
-    def lifespans(self) -> torch.Tensor:
+    def lifespans(self, index: torch.Tensor | None = None) -> torch.Tensor:
         """Lifespan [G] in engine time: the seeded one times ``exp(lifespan_log_scale)`` (0 =
-        always visible). What the bundle stores and the Blender preview windows by."""
-        return self.gauss_lifespan * torch.exp(self.lifespan_log_scale)
+        always visible; ``index [L]``: of those rows only). What the bundle stores and the
+        Blender preview windows by."""
+        if index is None:
+            return self.gauss_lifespan * torch.exp(self.lifespan_log_scale)
+        return self.gauss_lifespan[index] * torch.exp(self.lifespan_log_scale[index])
 
     def opacities_at(self, t: float | None, index: torch.Tensor | None = None) -> torch.Tensor:
         """Opacity [G] at engine time ``t``: :meth:`opacities` times each Gaussian's lifespan
         window ``exp(-0.5 ((t - t_center) / lifespan)^2)`` (:meth:`lifespans`; 1 where the
         lifespan is 0, and everywhere when ``t`` is None). ``index [L]``: of those rows only
         ([L]; the same values as the full tensor's rows)."""
-        if index is None:
-            opacity = self.opacities()
-        else:
-            opacity = torch.sigmoid(self.opacity_logits[index])
+        opacity = self.opacities(index)
         if t is None or not bool((self.gauss_lifespan > 0).any()):
             return opacity
-        if index is None:
-            return opacity * lifespan_window(float(t), self.gauss_t_center, self.lifespans())
-        life = self.gauss_lifespan[index] * torch.exp(self.lifespan_log_scale[index])
-        return opacity * lifespan_window(float(t), self.gauss_t_center[index], life)
+        t_center = self.gauss_t_center if index is None else self.gauss_t_center[index]
+        return opacity * lifespan_window(float(t), t_center, self.lifespans(index))
 
-    def sh(self) -> torch.Tensor:
-        """[G, M, 3] spherical-harmonic coefficients."""
-        return torch.cat([self.sh_dc, self.sh_rest], dim=1)
+    def sh(self, index: torch.Tensor | None = None) -> torch.Tensor:
+        """[G, M, 3] spherical-harmonic coefficients (``index [L]``: of those rows only)."""
+        if index is None:
+            return torch.cat([self.sh_dc, self.sh_rest], dim=1)
+        return torch.cat([self.sh_dc[index], self.sh_rest[index]], dim=1)
 
     def node_radii(self) -> torch.Tensor:
         return torch.exp(self.node_log_radii)

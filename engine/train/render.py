@@ -32,7 +32,7 @@ def scene_colors(model, means: torch.Tensor, w2c: torch.Tensor, index: torch.Ten
         else:
             if fused_sh_available(model.sh_degree, means, sh_dc, sh_rest):
                 return fused_sh_colors(means, sh_dc, sh_rest, model.sh_degree, w2c)
-    return sh_to_colors(torch.cat([sh_dc, sh_rest], dim=1), model.sh_degree, means, w2c)
+    return sh_to_colors(model.sh(index), model.sh_degree, means, w2c)
 
 
 def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor,
@@ -74,5 +74,4 @@ def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tenso
                   width=width, height=height, background=background, backend=backend, extra=extra)
     if colors is not None:
         return raster.render(colors=colors, **kwargs)
-    sh = model.sh() if index is None else torch.cat([model.sh_dc[index], model.sh_rest[index]], dim=1)
-    return raster.render(sh=sh, sh_degree=model.sh_degree, **kwargs)
+    return raster.render(sh=model.sh(index), sh_degree=model.sh_degree, **kwargs)

@@ -7,9 +7,10 @@ SIGTERM (the CLI turns both into ``KeyboardInterrupt``); ``resume=True`` continu
 the last checkpoint and reproduces the uninterrupted run (CPU, same seed).
 
 The trainer keeps the loop, the learning-rate schedule, checkpoint / resume and export;
-scoring its frames is :mod:`engine.train.evaluation`'s. The loss is :class:`engine.train.objective.Objective`'s; densification is done
-by the strategies of :mod:`engine.train.strategy`, called at fixed points of a step; the
-optimiser and its row surgery are :mod:`engine.train.param_edit`'s.
+scoring its frames is :mod:`engine.train.evaluation`'s. The loss is
+:class:`engine.train.objective.Objective`'s; densification is done by the strategies of
+:mod:`engine.train.strategy`, called at fixed points of a step; the optimiser and its row
+surgery are :mod:`engine.train.param_edit`'s.
 """
 
 from __future__ import annotations
