@@ -19,8 +19,10 @@ like Blender imports an installed extension.
 from __future__ import annotations
 
 import argparse
+import atexit
 import importlib
 import json
+import shutil
 import sys
 import tempfile
 import time
@@ -34,6 +36,8 @@ def import_extension():
     if "motion_splats" in sys.modules:
         return sys.modules["motion_splats"]
     root = Path(tempfile.mkdtemp(prefix="ms_ext_"))
+    # removed when the process ends (rmtree unlinks the symlink, it does not follow it)
+    atexit.register(shutil.rmtree, root, ignore_errors=True)
     (root / "motion_splats").symlink_to(REPO, target_is_directory=True)
     sys.path.insert(0, str(root))
     return importlib.import_module("motion_splats")
