@@ -82,6 +82,8 @@ def add_arguments(parser) -> None:
                         help="optical flow for tracks and mask (PriorConfig.flow_backend; default dis)")
     parser.add_argument("--flow-model", help="RAFT-contract ONNX flow model (implies --flow-backend onnx)")
     parser.add_argument("--flow-width", type=int, default=None, help="working width of the learned flow")
+    parser.add_argument("--flow-alone", action="store_true",
+                        help="use the learned flow alone, not fused with DIS per pixel (PriorConfig.flow_fuse_dis)")
     parser.add_argument("--depth-model", help="ONNX monocular depth model (research weights: benchmark only)")
     parser.add_argument("--depth-output", choices=("inverse", "depth"), default=None,
                         help="what --depth-model predicts (default: its sidecar, else inverse)")
@@ -444,6 +446,8 @@ def prior_config(args, tmp_dir=None):
         cfg.flow_backend, cfg.flow_model = "onnx", args.flow_model
     if getattr(args, "flow_width", None):
         cfg.flow_model_width = int(args.flow_width)
+    if getattr(args, "flow_alone", False):
+        cfg.flow_fuse_dis = False
     if getattr(args, "depth_model", None):
         model = Path(args.depth_model).resolve()
         if args.depth_sidecar:
@@ -476,7 +480,8 @@ def bench_scene(scene_dir, frames: int | None = None, num_points: int | None = N
     if cfg is None:
         cfg = PriorConfig() if num_points is None else PriorConfig(num_points=int(num_points))
     fbk, fmodel = resolve_flow_backend(cfg.flow_backend, cfg.flow_model)
-    base["priors"] = ",".join([f"flow={fbk}" + (f":{Path(fmodel).stem}@{cfg.flow_model_width}" if fmodel else ""),
+    learned = (f":{Path(fmodel).stem}@{cfg.flow_model_width}" + ("+dis" if cfg.flow_fuse_dis else "")) if fmodel else ""
+    base["priors"] = ",".join([f"flow={fbk}{learned}",
                                f"depth={cfg.depth_backend}" + (f":{Path(cfg.depth_model).stem}" if cfg.depth_model else "")])
     stages: dict = {}
     t0 = time.perf_counter()

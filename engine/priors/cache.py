@@ -62,6 +62,9 @@ class PriorConfig:
     flow_backend: str = "dis"  # 'auto' (shipped RAFT when usable, else DIS) | 'dis' | 'onnx' (flow_model)
     flow_model: str | None = None
     flow_model_width: int = 240  # working width of a learned flow (shared by tracks and the motion mask)
+    # a learned flow is fused with DIS per pixel (the lower photometric residual wins,
+    # engine.priors.flow.FusedFlowSource); False: the learned flow alone
+    flow_fuse_dis: bool = True
     flow_fine: bool = True  # DIS tracks: fuse with the finest-scale flow (follows small fast objects; ~4x the flow time)
     dense_moving: bool = False  # tracks: re-seed at half the grid cell in moving regions (see docs/benchmarks.md)
     depth_backend: str = "sparse"
@@ -188,6 +191,10 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
     source = tsource = None
     if fbk == "onnx":
         source = tsource = _flow.FlowSource(frames, "onnx", fmodel, cfg.flow_model_width)
+        if cfg.flow_fuse_dis:  # at the DIS tracker's working size, with its fine-scale fusion
+            fid.append("fused-dis")
+            source = tsource = _flow.FusedFlowSource(
+                _flow.FlowSource(frames, "dis", None, cfg.flow_width, 400, fuse_fine=cfg.flow_fine), source)
     elif cfg.flow_fine:  # tracks only: the motion mask keeps its own plain DIS
         tsource = _flow.FlowSource(frames, "dis", None, cfg.flow_width, 400, fuse_fine=True)
 
@@ -208,6 +215,8 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
                                           dense_moving=cfg.dense_moving)
         _save(cache, "tracks", k, **dataclasses.asdict(tracks))
     log(f"tracks: {tracks.xy.shape[0]} points")
+    if isinstance(tsource, _flow.FusedFlowSource) and "tracks" in recomputed:
+        log(f"flow: the learned flow beat DIS at {tsource.picked:.0%} of the pixels")
 
     # depth, first pass (depends on tracks unless precomputed): what the motion mask needs
     dp = {"backend": cfg.depth_backend, "model": _file_id(cfg.depth_model), "path": _file_id(cfg.depth_path),

@@ -15,7 +15,7 @@ tracks start on later frames too (``query_frame``). Coordinates are continuous p
 coordinates of the original frames.
 
 The flow comes from a :class:`~engine.priors.flow.FlowSource` (``source``; default DIS as
-above, or a learned RAFT-contract flow shared with the motion mask). Options, all measured
+above, or a learned RAFT-contract flow, fused per pixel with DIS, shared with the motion mask). Options, all measured
 on the generated scenes (``python -m engine.bench priors``, docs/benchmarks.md) and off by
 default because they did not pay off there: ``dense_moving`` re-seeds at half the grid cell
 where the flow departs from a robust homography (about 3x the tracks on moving parts, better

@@ -211,3 +211,78 @@ def test_cli_flow_and_depth_output_options(tmp_path):
     cfg = prior_config_from_args(parser.parse_args(base + ["--flow-backend", "auto"]))
     assert (cfg.flow_backend, cfg.flow_model, cfg.depth_output) == ("auto", None, None)
     assert prior_config_from_args(parser.parse_args(base)).flow_backend == "dis"
+
+
+class _StubFlow:
+    """A flow source returning fixed flows (``flows[(f, g)]``) at ``size``."""
+
+    def __init__(self, flows, size, gray=None, model_path=None):
+        self.flows, self.size, self.gray, self.model_path = flows, size, gray, model_path
+        self.scale = 1.0
+
+    def __call__(self, f, g):
+        return self.flows[(f, g)]
+
+    def resampled(self, f, g, size):
+        return flow_mod.resize_flow(self(f, g), size)
+
+    def forget(self, f, g):
+        pass
+
+
+def _translated_pair(shift=(3.0, -1.5), H=96, W=128):
+    rng = np.random.default_rng(1)
+    a = cv2.GaussianBlur(rng.random((H, W)).astype(np.float32), (0, 0), 1.5)
+    a = ((a - a.min()) / (a.max() - a.min()) * 200 + 20).astype(np.uint8)
+    # b(p + shift) = a(p): the flow a -> b is ``shift`` everywhere
+    M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    b = cv2.warpAffine(a, M, (W, H), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    return np.stack([a, b]), np.array(shift, np.float32)
+
+
+def test_fused_source_takes_per_pixel_the_flow_that_matches_the_image():
+    gray, shift = _translated_pair()
+    H, W = gray.shape[1:]
+    left = np.zeros((H, W), bool); left[:, : W // 2] = True
+    dis_fl = np.where(left[..., None], 0.0, shift).astype(np.float32)  # DIS right on the right half only
+    half = np.where(left[::2, ::2, None], shift / 2, 0.0).astype(np.float32)  # learned, at half size: left only
+    dis = _StubFlow({(0, 1): dis_fl}, (H, W), gray)
+    learned = _StubFlow({(0, 1): half}, (H // 2, W // 2), model_path="m.onnx")
+    fused = flow_mod.FusedFlowSource(dis, learned)
+    out = fused(0, 1)
+    assert out.shape == (H, W, 2) and fused.size == (H, W) and fused.gray is gray
+    inner = np.zeros((H, W), bool); inner[6:-6, 6:-6] = True
+    inner[:, W // 2 - 5: W // 2 + 5] = False  # the residual's 5-px window straddles the seam
+    err = np.linalg.norm(out - shift, axis=-1)
+    assert np.median(err[inner]) < 1e-6 and np.mean(err[inner] < 1e-3) > 0.98, np.mean(err[inner] < 1e-3)
+    assert 0.4 < fused.picked < 0.6
+    assert fused.resampled(0, 1, (H // 2, W // 2)).shape == (H // 2, W // 2, 2)
+    # the same wrong flow on both sides: whichever is taken, nothing better appears
+    fused_bad = flow_mod.FusedFlowSource(_StubFlow({(0, 1): np.zeros((H, W, 2), np.float32)}, (H, W), gray), learned)
+    assert np.mean(np.linalg.norm(fused_bad(0, 1) - shift, axis=-1)[inner] < 1e-3) < 0.55
+
+
+def test_photometric_residual_is_zero_for_the_true_flow_only():
+    gray, shift = _translated_pair()
+    true = np.broadcast_to(shift, gray.shape[1:] + (2,)).astype(np.float32)
+    r_true = flow_mod.photometric_residual(gray[0], gray[1], true)[8:-8, 8:-8]
+    r_off = flow_mod.photometric_residual(gray[0], gray[1], true + np.float32([0.5, 0.0]))[8:-8, 8:-8]
+    assert np.median(r_true) < 1.0 < np.median(r_off)
+
+
+def test_a_learned_flow_that_misreads_the_image_loses_to_dis(tmp_path):
+    # the tiny model reads the frames' brightening as 1 px a frame of motion; the texture does
+    # not move, so DIS's zero flow matches the image better and the fused tracks stand still
+    model = _tiny_raft(tmp_path / "raft.onnx")
+    frames = _drifting_frames(F=4, H=64, W=96)
+    K = np.tile(np.array([[90.0, 0, 48], [0, 90, 32], [0, 0, 1]]), (4, 1, 1))
+    w2c = np.tile(np.eye(4), (4, 1, 1))
+    steps = {}
+    for fuse in (True, False):
+        cfg = PriorConfig(num_points=150, flow_backend="onnx", flow_model=model, flow_model_width=96,
+                          flow_fuse_dis=fuse)
+        p = compute_priors(frames, K, w2c, cfg, cache_dir=tmp_path / "c")
+        sel = (p.tracks.query_frame == 0) & p.tracks.visible.all(1)
+        assert sel.sum() > 50
+        steps[fuse] = np.median(np.abs(np.diff(p.tracks.xy[sel], axis=1)))
+    assert steps[False] > 0.9 and steps[True] < 0.1, steps
