@@ -108,6 +108,8 @@ def describe_priors(cfg, store: ModelStore | None = None, registry=None) -> dict
 
     Weight-free roles give ``{"backend": <name>}``; a precomputed file gives
     ``{"backend": "file", "file": path}``. Roles the PriorConfig does not have are left out.
+    A learned flow fused per pixel with DIS (``PriorConfig.flow_fuse_dis``) adds
+    ``"fused_with": "dis"``.
     """
     store = store or ModelStore()
     registry = registry if registry is not None else load_registry()
@@ -122,6 +124,8 @@ def describe_priors(cfg, store: ModelStore | None = None, registry=None) -> dict
         else:
             name, file = _effective_backend(role, getattr(cfg, backend))
             out[role] = {"backend": name, **(_model_identity(file, store, registry) if file else {})}
+        if role == "flow" and "file" in out[role] and getattr(cfg, "flow_fuse_dis", False):
+            out[role]["fused_with"] = "dis"  # engine.priors.flow.FusedFlowSource
     return out
 
 

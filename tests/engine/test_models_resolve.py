@@ -207,3 +207,14 @@ def test_unresolved_auto_flow_is_recorded_as_what_runs(tmp_path):
     else:
         raft = next(s for s in load_registry() if s.name == "raft-small")
         assert desc["backend"] == "onnx" and desc["model"] == "raft-small" and desc["sha256"] == raft.sha256
+
+
+def test_a_learned_flow_is_described_with_its_fusion(tmp_path):
+    mine = tmp_path / "flow.onnx"
+    mine.write_bytes(tiny_onnx_bytes(seed=5))
+    store = ModelStore(tmp_path / "models")
+    fused = describe_priors(PriorConfig(flow_backend="onnx", flow_model=str(mine)), store, ())["flow"]
+    assert fused["model"] == "flow" and fused["fused_with"] == "dis"
+    alone = describe_priors(PriorConfig(flow_backend="onnx", flow_model=str(mine), flow_fuse_dis=False), store, ())
+    assert "fused_with" not in alone["flow"]
+    assert describe_priors(PriorConfig(), store, ())["flow"] == {"backend": "dis"}
