@@ -47,6 +47,9 @@ def add_clip_options(parser):
     pri.add_argument("--flow-backend", choices=("auto", "dis", "onnx"),
                      help="optical flow: dis (weight-free, default), onnx (--flow-model or the shipped RAFT-small), "
                           "auto (the shipped RAFT-small when usable, else dis)")
+    pri.add_argument("--flow-alone", action="store_true",
+                     help="use a learned flow alone (default: per pixel the learned flow or DIS, whichever matches "
+                          "the next frame better)")
     pri.add_argument("--depth-output", choices=("inverse", "depth"),
                      help="what --depth-model predicts: inverse (larger = nearer, MiDaS/Depth Anything) or depth "
                           "(larger = farther, e.g. PyDNet); default: the model's sidecar JSON, else inverse")
@@ -110,6 +113,8 @@ def prior_config_from_args(args):
         cfg.flow_backend = args.flow_backend
     if getattr(args, "flow_model", None):
         cfg.flow_backend, cfg.flow_model = "onnx", args.flow_model
+    if getattr(args, "flow_alone", False):
+        cfg.flow_fuse_dis = False
     cfg.depth_output = getattr(args, "depth_output", None)
     if getattr(args, "resting_objects", None):
         cfg.resting_objects = args.resting_objects

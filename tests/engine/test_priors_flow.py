@@ -211,6 +211,7 @@ def test_cli_flow_and_depth_output_options(tmp_path):
     cfg = prior_config_from_args(parser.parse_args(base + ["--flow-backend", "auto"]))
     assert (cfg.flow_backend, cfg.flow_model, cfg.depth_output) == ("auto", None, None)
     assert prior_config_from_args(parser.parse_args(base)).flow_backend == "dis"
+    assert cfg.flow_fuse_dis and not prior_config_from_args(parser.parse_args(base + ["--flow-alone"])).flow_fuse_dis
 
 
 class _StubFlow:
