@@ -43,7 +43,7 @@ from . import tracks as _tracks
 
 CACHE_VERSION = 1
 RESTING_MODES = ("auto", "off")
-ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth_pass1": 3, "dynamic": 8, "depth": 5}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth_pass1": 3, "dynamic": 9, "depth": 5}
 
 
 @dataclass
@@ -65,7 +65,7 @@ class PriorConfig:
     # a learned flow is fused with DIS per pixel (the lower photometric residual wins,
     # engine.priors.flow.FusedFlowSource); False: the learned flow alone
     flow_fuse_dis: bool = True
-    flow_fine: bool = True  # DIS tracks: fuse with the finest-scale flow (follows small fast objects; ~4x the flow time)
+    flow_fine: bool = True  # DIS (tracks and motion mask): fuse with the finest-scale flow (follows small fast objects; ~4x the flow time)
     dense_moving: bool = False  # tracks: re-seed at half the grid cell in moving regions (see docs/benchmarks.md)
     depth_backend: str = "sparse"
     # weight-free depth of moving objects: 'contact' (ground contact + occlusion order, then
@@ -185,7 +185,9 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
     keys, recomputed = {}, []
     log = reporter.log if reporter is not None else (lambda *_a, **_k: None)
 
-    # one flow for the tracker and the motion mask when it is learned (DIS stays per consumer: cheap)
+    # one flow for the tracker and the motion mask: the mask on the tracker's fine-scale fused
+    # DIS finds the moving parts better than on its own plain DIS at 320 px (large-motion
+    # scenes: IoU 0.64 -> 0.72, 0.60 -> 0.70; docs/benchmarks.md, Priors)
     fbk, fmodel = _flow.resolve_flow_backend(cfg.flow_backend, cfg.flow_model)
     fid = [fbk, _file_id(fmodel), cfg.flow_model_width if fbk == "onnx" else None]
     source = tsource = None
@@ -195,8 +197,8 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             fid.append("fused-dis")
             source = tsource = _flow.FusedFlowSource(
                 _flow.FlowSource(frames, "dis", None, cfg.flow_width, 400, fuse_fine=cfg.flow_fine), source)
-    elif cfg.flow_fine:  # tracks only: the motion mask keeps its own plain DIS
-        tsource = _flow.FlowSource(frames, "dis", None, cfg.flow_width, 400, fuse_fine=True)
+    elif cfg.flow_fine:
+        source = tsource = _flow.FlowSource(frames, "dis", None, cfg.flow_width, 400, fuse_fine=True)
 
     # tracks
     tp = {"backend": cfg.tracks_backend, "model": _file_id(cfg.tracks_model), "path": _file_id(cfg.tracks_path),
@@ -253,7 +255,8 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
 
     # dynamic mask (motion backend depends on depth)
     mp = {"backend": cfg.mask_backend, "model": _file_id(cfg.mask_model), "path": _file_id(cfg.mask_path),
-          "w": cfg.mask_width, "fg": cfg.foreground_classes, "flow": fid if cfg.mask_backend == "motion" else None,
+          "w": cfg.mask_width, "fg": cfg.foreground_classes,
+          "flow": fid + [bool(cfg.flow_fine)] if cfg.mask_backend == "motion" else None,
           "resting": cfg.resting_objects if cfg.mask_backend == "motion" else None}
     up = (keys["depth_pass1"],) if (cfg.mask_backend == "motion" and not cfg.mask_path) else ()
     keys["dynamic"] = k = prior_key("dynamic", cid, mp, up)
