@@ -198,6 +198,21 @@ def test_default_tracks_use_the_fused_flow(tmp_path):
     assert PriorConfig().flow_fine
 
 
+def test_the_motion_mask_shares_the_trackers_flow(tmp_path):
+    # with the fine-scale fused DIS the motion mask resamples the tracker's memoised flows; without
+    # it the mask computes its own plain DIS
+    frames, depth, mask, K, w2c = scene.render(F=4)
+    real = flow_mod.dis_flow
+    plain = {}
+    for fine in (True, False):
+        calls = []
+        with mock.patch.object(flow_mod, "dis_flow", side_effect=lambda *a: calls.append(1) or real(*a)):
+            p = compute_priors(frames, K[:4], w2c[:4], PriorConfig(num_points=200, flow_fine=fine))
+        plain[fine] = len(calls)
+        assert p.dynamic.shape == frames.shape[:3]
+    assert plain[True] == 0 and plain[False] > 0, plain
+
+
 def test_cli_flow_and_depth_output_options(tmp_path):
     import argparse
 
