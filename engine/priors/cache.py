@@ -190,15 +190,15 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
     # scenes: IoU 0.64 -> 0.72, 0.60 -> 0.70; docs/benchmarks.md, Priors)
     fbk, fmodel = _flow.resolve_flow_backend(cfg.flow_backend, cfg.flow_model)
     fid = [fbk, _file_id(fmodel), cfg.flow_model_width if fbk == "onnx" else None]
-    source = tsource = None
+    source = None  # None: the tracker's and the mask's own plain DIS
     if fbk == "onnx":
-        source = tsource = _flow.FlowSource(frames, "onnx", fmodel, cfg.flow_model_width)
+        source = _flow.FlowSource(frames, "onnx", fmodel, cfg.flow_model_width)
         if cfg.flow_fuse_dis:  # at the DIS tracker's working size, with its fine-scale fusion
             fid.append("fused-dis")
-            source = tsource = _flow.FusedFlowSource(
+            source = _flow.FusedFlowSource(
                 _flow.FlowSource(frames, "dis", None, cfg.flow_width, 400, fuse_fine=cfg.flow_fine), source)
     elif cfg.flow_fine:
-        source = tsource = _flow.FlowSource(frames, "dis", None, cfg.flow_width, 400, fuse_fine=True)
+        source = _flow.FlowSource(frames, "dis", None, cfg.flow_width, 400, fuse_fine=True)
 
     # tracks
     tp = {"backend": cfg.tracks_backend, "model": _file_id(cfg.tracks_model), "path": _file_id(cfg.tracks_path),
@@ -213,12 +213,12 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             tracks = _pre.load_tracks(cfg.tracks_path, F)
         else:
             tracks = _tracks.track_points(frames, cfg.num_points, cfg.tracks_backend, cfg.tracks_model,
-                                          cfg.flow_width, cfg.fb_thresh, reporter=reporter, source=tsource,
+                                          cfg.flow_width, cfg.fb_thresh, reporter=reporter, source=source,
                                           dense_moving=cfg.dense_moving)
         _save(cache, "tracks", k, **dataclasses.asdict(tracks))
     log(f"tracks: {tracks.xy.shape[0]} points")
-    if isinstance(tsource, _flow.FusedFlowSource) and "tracks" in recomputed:
-        log(f"flow: the learned flow beat DIS at {tsource.picked:.0%} of the pixels")
+    if isinstance(source, _flow.FusedFlowSource) and "tracks" in recomputed:
+        log(f"flow: the learned flow beat DIS at {source.picked:.0%} of the pixels")
 
     # depth, first pass (depends on tracks unless precomputed): what the motion mask needs
     dp = {"backend": cfg.depth_backend, "model": _file_id(cfg.depth_model), "path": _file_id(cfg.depth_path),

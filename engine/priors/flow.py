@@ -93,13 +93,19 @@ def dis_flow(a, b, preset="medium"):
     return dis.calc(a, b, None)
 
 
-def fb_error(a, b):
-    """Forward-backward error ``|a(p) + b(p + a(p))|`` [h,w] of flows ``a`` (f->g) and ``b`` (g->f)."""
+def pull_back(img, flow):
+    """``img`` [h,w(,C)] sampled at ``p + flow(p)`` for every pixel ``p`` of ``flow [h,w,2]``
+    (bilinear, edges replicated): frame ``g`` brought onto frame ``f`` by the flow ``f -> g``."""
     import cv2
 
-    h, w = a.shape[:2]
+    h, w = flow.shape[:2]
     xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    e = a + cv2.remap(b, xs + a[..., 0], ys + a[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(img, xs + flow[..., 0], ys + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def fb_error(a, b):
+    """Forward-backward error ``|a(p) + b(p + a(p))|`` [h,w] of flows ``a`` (f->g) and ``b`` (g->f)."""
+    e = a + pull_back(b, a)
     return np.hypot(e[..., 0], e[..., 1])
 
 
@@ -273,7 +279,7 @@ class FusedFlowSource:
         if out is None:
             d = self.dis(f, g)
             r = self.learned.resampled(f, g, self.size)
-            a, b = self.gray[f], self.gray[g]
+            a, b = self.gray[f].astype(np.float32), self.gray[g].astype(np.float32)
             take = photometric_residual(a, b, r, self.window) < photometric_residual(a, b, d, self.window)
             self._picked[0] += int(take.sum()); self._picked[1] += take.size
             out = self._memo[key] = np.where(take[..., None], r, d)
@@ -299,13 +305,10 @@ def resize_flow(flow, size):
 
 def photometric_residual(a, b, flow, window=5):
     """Box-averaged ``|a(p) - b(p + flow(p))|`` [h,w] float32 for grey ``a``, ``b`` [h,w] and a
-    flow ``[h,w,2]`` from ``a`` to ``b`` (``b`` sampled bilinearly, edges replicated)."""
+    flow ``[h,w,2]`` from ``a`` to ``b`` (:func:`pull_back`)."""
     import cv2
 
-    h, w = a.shape[:2]
-    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    pulled = cv2.remap(np.asarray(b, np.float32), xs + flow[..., 0], ys + flow[..., 1], cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)
+    pulled = pull_back(np.asarray(b, np.float32), flow)
     return cv2.blur(np.abs(np.asarray(a, np.float32) - pulled), (window, window))
 
 
