@@ -20,8 +20,9 @@ from . import bundle as B
 from .errors import InputError
 from .geometry.camera import scene_extent
 from .protocol import Reporter
-from .train.config import TrainConfig, scale_to_frames
+from .train.config import TrainConfig, scale_to_frames, steps_per_frame
 from .train.data import TrainingData
+from .train.lifespan import run_has_lifespans
 
 
 @dataclasses.dataclass
@@ -357,11 +358,15 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
     prep = prepare(clip, cfg, prior_config, cache_dir=cache_dir or Path(out_dir) / "cache", reporter=reporter)
     # the bundle's config records what ran: "auto" decided by where the depth came from
     cfg = dataclasses.replace(cfg, motion_init=resolve_motion_init(prep, cfg))
-    scaled = scale_to_frames(cfg, len(prep.train_idx))
+    device = pick_device(cfg.device)
+    data = training_data(prep, device)
+    lifespans = run_has_lifespans(cfg, data)
+    scaled = scale_to_frames(cfg, len(prep.train_idx), lifespans)
     if scaled.steps != cfg.steps:
-        reporter.log(f"training {scaled.steps} steps, {cfg.min_steps_per_frame:g} per training frame over "
-                     f"{len(prep.train_idx)} frames (the {cfg.preset} preset's {cfg.steps} are meant for ~60; "
-                     f"--steps N trains exactly N, --max-frames fewer frames)")
+        why = ("its moving Gaussians each learn only on their own frame's steps" if lifespans
+               else f"the {cfg.preset} preset's {cfg.steps} are meant for ~60 frames")
+        reporter.log(f"training {scaled.steps} steps, {steps_per_frame(cfg, lifespans):g} per training frame "
+                     f"over {len(prep.train_idx)} frames ({why}; --steps N trains exactly N)")
     cfg = scaled
     reporter.log(f"node motion starts from {'lifted tracks' if cfg.motion_init == 'tracks' else 'rest'} "
                  f"(depth prior: {prep.priors.depth_source})")
@@ -376,8 +381,6 @@ def reconstruct(clip_path, out_dir, cfg: TrainConfig, reporter: Reporter | None 
         # show nodes before training finishes: the add-on can build them right away
         B.save_bundle(out_dir, bundle_scene(prep, cfg, stage="init"), nodes)
         reporter.progress("nodes", 1, 1, nodes=nodes.count)
-    device = pick_device(cfg.device)
-    data = training_data(prep, device)
     # the still plate (median training frame) beside every quality figure: a result that
     # lost everything that moves scores about this
     plate = {"train": still_plate_psnr(prep.frames, prep.train_idx, prep.train_idx),

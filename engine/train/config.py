@@ -31,6 +31,8 @@ MOTION_MODELS = ("spline", "mlp", "per_frame")
 MOTION_INITS = ("auto", "tracks", "rest")
 #: TrainConfig.lifespan (engine/train/lifespan.py)
 LIFESPAN_MODES = ("auto", "on", "off")
+#: TrainConfig.frame_order (engine/train/frame_order.py)
+FRAME_ORDERS = ("epochs", "uniform")
 
 
 @dataclass
@@ -138,6 +140,9 @@ class TrainConfig:
     min_steps_per_frame: float = 10.0    # a long clip trains at least this many steps per training frame (steps
                                          # and the step schedule scaled up, scale_to_frames); 0 = steps as given,
                                          # which an explicit steps value implies (preset_config)
+    lifespan_steps_per_frame: float = 30.0  # ... and a run with lifespans at least this many (each frame's moving
+                                         # Gaussians learn only on its own steps; scale_to_frames)
+    frame_order: str = "epochs"          # the frame each step draws (engine/train/frame_order.py): epochs | uniform
     warmup_static_steps: int = 50        # first steps train appearance with motion frozen
     lr_means: float = 1.6e-4             # relative to scene extent
     lr_means_final: float = 1.6e-6
@@ -195,6 +200,8 @@ class TrainConfig:
             bad("node_rotations", "must be tracks or identity")
         if self.lifespan not in LIFESPAN_MODES:
             bad("lifespan", f"must be one of {LIFESPAN_MODES}")
+        if self.frame_order not in FRAME_ORDERS:
+            bad("frame_order", f"must be one of {FRAME_ORDERS}")
         if self.device not in ("auto", "cpu", "cuda"):
             bad("device", "must be auto, cpu or cuda")
         if self.backend not in ("auto", "reference", "cpu", "gsplat"):
@@ -219,7 +226,7 @@ class TrainConfig:
         for key in [f.name for f in dataclasses.fields(self) if f.name.startswith("lr_")] + [
                 "densify_grad_threshold", "percent_dense", "opacity_prune", "node_spawn_factor",
                 "max_nodes_factor", "node_prune_weight", "lifespan_frames", "lifespan_seed_factor",
-                "lifespan_seed_frames", "lifespan_seed_max", "min_steps_per_frame"]:
+                "lifespan_seed_frames", "lifespan_seed_max", "min_steps_per_frame", "lifespan_steps_per_frame"]:
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
         if not 0 < self.lifespan_min <= 1 <= self.lifespan_max:
@@ -351,8 +358,9 @@ def preset_config(name: str, source: str | None = None, **overrides: Any) -> Tra
         raise InputError(f"unknown preset {name!r}", None, f"choose one of {sorted(PRESETS)}")
     values = dict(PRESETS[name])
     given = {k: v for k, v in overrides.items() if v is not None}
-    if "steps" in given and "min_steps_per_frame" not in given:
-        given["min_steps_per_frame"] = 0.0  # a step count asked for is kept as it is
+    if "steps" in given:  # a step count asked for is kept as it is
+        for key in ("min_steps_per_frame", "lifespan_steps_per_frame"):
+            given.setdefault(key, 0.0)
     values.update(given)
     values["preset"] = name
     loss = values.pop("loss", None)
@@ -367,8 +375,26 @@ STEP_SCHEDULE = ("warmup_static_steps", "densify_from", "densify_until", "densif
                  "checkpoint_every", "opacity_reset_every")
 
 
-def scale_to_frames(cfg: TrainConfig, train_frames: int) -> TrainConfig:
-    """``cfg`` with at least ``cfg.min_steps_per_frame`` steps per training frame.
+def steps_per_frame(cfg: TrainConfig, lifespans: bool) -> float:
+    """The fewest steps per training frame ``cfg`` asks for: ``min_steps_per_frame``, and with
+    ``lifespans`` (the run's moving Gaussians have them: :func:`engine.train.lifespan.resolve_lifespan`
+    > 0) at least ``lifespan_steps_per_frame``; 0 when ``min_steps_per_frame`` is 0 (steps as given).
+
+    Why more with lifespans: a frame's moving Gaussians draw only around their own time, so they
+    learn only on the steps that draw their frame (~11 at the preview's 600 steps over 52 frames),
+    whereas the static scene learns on every step. At 10 steps a frame the hands and the moving cups
+    of cups.mp4 render as ghosts on the training frames themselves; 20 / 30 steps a frame take its
+    training frames from +8.5 to +10.2 / +11.2 dB over the still plate, bedroom.mp4's from +8.9 to
+    +10.9 at 30 (docs/benchmarks.md, *Steps per frame*). Larger learning rates for those Gaussians
+    do not replace the steps (the same section).
+    """
+    if cfg.min_steps_per_frame <= 0:
+        return 0.0
+    return max(cfg.min_steps_per_frame, cfg.lifespan_steps_per_frame if lifespans else 0.0)
+
+
+def scale_to_frames(cfg: TrainConfig, train_frames: int, lifespans: bool = False) -> TrainConfig:
+    """``cfg`` with at least :func:`steps_per_frame` steps per training frame.
 
     Why: each frame's moving Gaussians (lifespans) and the node keys near its time learn only
     on the steps that draw that frame. The presets' step counts are set for a clip of ~60
@@ -376,13 +402,15 @@ def scale_to_frames(cfg: TrainConfig, train_frames: int) -> TrainConfig:
     each frame two visits, and cups.mp4 trained +4.55 dB over the still plate instead of +8
     (its moving cups misplaced and smeared; 3000 steps with the schedule scaled: +7.31,
     docs/benchmarks.md). The
-    steps rise to ``ceil(min_steps_per_frame * train_frames)`` and :data:`STEP_SCHEDULE`
-    (warm-up, densification window and interval, rebinding, checkpoints) by the same factor,
-    so the run keeps the preset's shape. A config that already gives enough steps, or sets
-    ``min_steps_per_frame`` 0 (any explicit ``steps``: :func:`preset_config`), is returned as it is.
+    steps rise to ``ceil(steps_per_frame(cfg, lifespans) * train_frames)`` and
+    :data:`STEP_SCHEDULE` (warm-up, densification window and interval, rebinding, checkpoints)
+    by the same factor, so the run keeps the preset's shape. A config that already gives enough
+    steps, or sets ``min_steps_per_frame`` 0 (any explicit ``steps``: :func:`preset_config`), is
+    returned as it is.
     """
-    want = int(math.ceil(cfg.min_steps_per_frame * max(int(train_frames), 0)))
-    if cfg.min_steps_per_frame <= 0 or want <= cfg.steps:
+    per_frame = steps_per_frame(cfg, lifespans)
+    want = int(math.ceil(per_frame * max(int(train_frames), 0)))
+    if per_frame <= 0 or want <= cfg.steps:
         return cfg
     factor = want / cfg.steps
     scaled = {key: int(round(getattr(cfg, key) * factor)) for key in STEP_SCHEDULE if getattr(cfg, key) > 0}

@@ -133,6 +133,22 @@ def resolve_lifespan(mode: str, frames: float, train_times: torch.Tensor, train_
     return float(frames * gap)
 
 
+def run_has_lifespans(cfg, data) -> bool:
+    """Whether training ``data`` (a :class:`~engine.train.data.TrainingData`) under ``cfg`` gives
+    its moving Gaussians lifespans: the static / dynamic split is on, the dynamic prior calls
+    some training pixel moving, and :func:`resolve_lifespan` is positive. The split itself is
+    decided on the nodes (``engine.train.init_model``); this is the same decision on the prior
+    the nodes' flags come from, made before any model exists (the step count depends on it:
+    :func:`engine.train.config.steps_per_frame`)."""
+    if not cfg.split or data.fg is None:
+        return False
+    train = data.train_idx.to(data.fg.device)
+    if not bool((data.fg[train] >= cfg.dynamic_threshold).any()):
+        return False
+    return resolve_lifespan(cfg.lifespan, cfg.lifespan_frames, data.times[data.train_idx],
+                            data.w2c[data.train_idx], data.extent, data.held_out_cameras) > 0
+
+
 @torch.no_grad()
 def clamp_lifespans_(model, cfg) -> None:
     """Keep every learned lifespan within ``cfg.lifespan_min`` .. ``cfg.lifespan_max`` times its
