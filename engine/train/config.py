@@ -32,7 +32,7 @@ MOTION_INITS = ("auto", "tracks", "rest")
 #: TrainConfig.lifespan (engine/train/lifespan.py)
 LIFESPAN_MODES = ("auto", "on", "off")
 #: TrainConfig.frame_order (engine/train/frame_order.py)
-FRAME_ORDERS = ("epochs", "uniform")
+FRAME_ORDERS = ("auto", "epochs", "uniform")
 
 
 @dataclass
@@ -142,7 +142,8 @@ class TrainConfig:
                                          # which an explicit steps value implies (preset_config)
     lifespan_steps_per_frame: float = 30.0  # ... and a run with lifespans at least this many (each frame's moving
                                          # Gaussians learn only on its own steps; scale_to_frames)
-    frame_order: str = "epochs"          # the frame each step draws (engine/train/frame_order.py): epochs | uniform
+    frame_order: str = "auto"            # the frame each step draws (engine/train/frame_order.py): epochs | uniform |
+                                         # auto (epochs when the moving Gaussians have lifespans, else uniform)
     warmup_static_steps: int = 50        # first steps train appearance with motion frozen
     lr_means: float = 1.6e-4             # relative to scene extent
     lr_means_final: float = 1.6e-6

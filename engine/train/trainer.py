@@ -34,7 +34,7 @@ from .evaluation import evaluate_frames, quality_lines, render_frame, spread_sam
 from .lifespan import camera_translates, clamp_lifespans_, shown_gaussians
 from .objective import Objective
 from .param_edit import make_optimizer  # noqa: F401  (re-exported)
-from .frame_order import step_frame
+from .frame_order import resolve_frame_order, step_frame
 from .phases import no_phase
 from .render import render_scene, scene_colors
 from .split import freeze_static_nodes
@@ -251,6 +251,7 @@ class Trainer:
         cfg, d = self.cfg, self.data
         train_idx = d.train_idx.cpu()
         motion_groups = {"pos_keys", "rot_keys", "mlp"}
+        frame_order = resolve_frame_order(cfg.frame_order, bool((self.model.gauss_lifespan > 0).any()))
         t_start = time.perf_counter()
         self._stop_requested = False
         previous = self._install_stop_handlers()
@@ -268,7 +269,7 @@ class Trainer:
                 if self._stop_requested:  # SIGINT/SIGTERM: stop at a step boundary
                     raise KeyboardInterrupt
                 self._gen_state = self.gen.get_state()
-                f = step_frame(cfg.frame_order, self.step, train_idx, cfg.seed, self.gen)
+                f = step_frame(frame_order, self.step, train_idx, cfg.seed, self.gen)
                 self._lr_schedule()
                 ph = self.phases or no_phase
                 loss, metrics, out, shown = self._loss(f)

@@ -7,7 +7,7 @@ import torch
 
 from engine.errors import InputError
 from engine.train.config import preset_config
-from engine.train.frame_order import epoch_frame, step_frame
+from engine.train.frame_order import epoch_frame, resolve_frame_order, step_frame
 
 
 def test_every_epoch_draws_every_training_frame_once_in_a_new_order():
@@ -34,3 +34,13 @@ def test_uniform_draws_from_the_runs_generator_and_epochs_spread_the_visits():
     assert int(visits(uniform).min()) < 8
     with pytest.raises(InputError, match="frame_order"):
         preset_config("preview", frame_order="sequential")
+
+
+def test_auto_shuffles_epochs_only_for_a_run_with_lifespans():
+    assert preset_config("preview").frame_order == "auto"
+    assert resolve_frame_order("auto", lifespans=True) == "epochs"
+    assert resolve_frame_order("auto", lifespans=False) == "uniform"
+    assert resolve_frame_order("epochs", lifespans=False) == "epochs"
+    assert resolve_frame_order("uniform", lifespans=True) == "uniform"
+    with pytest.raises(ValueError, match="frame_order"):
+        resolve_frame_order("sequential", lifespans=True)
