@@ -30,8 +30,11 @@ $(BPY42_STAMP): $(STAMP)
 	  "$$($(BPY42)/bin/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")/motion_splats_engine.pth"
 	@touch $(BPY42_STAMP)
 
+# Two workers, one test file each at a time (module fixtures are built once): most of the
+# suite waits on subprocesses, imports and single-threaded steps, so on the 2-core CI machine
+# this about halves the wall time (docs/benchmarks.md, *Test suite*).
 test: $(STAMP) $(BPY42_STAMP)
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n 2 --dist loadfile tests
 	$(BPY42)/bin/python -c "import os, sys, pytest; rc = pytest.main(['-q', '-p', 'no:cacheprovider', \
 	  '-m', 'not slow', 'tests/addon']); sys.stdout.flush(); sys.stderr.flush(); os._exit(int(rc))"
 
