@@ -17,10 +17,13 @@ from tests.addon._support import bpy, clean_jobs, look_at_w2c, registered, user_
 
 
 def _fake_python(tmp_path) -> Path:
-    """An 'interpreter' that fails at once: the add-on's exports are already on disk by then."""
+    """An 'interpreter' that fails after 3 s: the add-on's exports are already on disk by then.
+    Not at once: the operator reports a job that has already failed by the time it returns as an
+    error (CANCELLED), and under load (two test workers) an instant exit could win that race."""
     fake = tmp_path / "fake_python"
     fake.write_text(f"#!{sys.executable}\n" + textwrap.dedent("""
-        import sys
+        import sys, time
+        time.sleep(3)
         sys.exit(3)
         """), encoding="utf-8")
     fake.chmod(0o755)

@@ -16,8 +16,11 @@ from tests.addon._support import REPO, bpy, clean_jobs, registered, user_dir  # 
 
 
 def _fake_python(tmp_path) -> Path:
+    """An 'interpreter' that fails after 3 s. Not at once: the operator reports a job that has
+    already failed by the time it returns as an error (CANCELLED), and under load (two test
+    workers) an instant exit sometimes won that race."""
     fake = tmp_path / "fake_python"
-    fake.write_text(f"#!{sys.executable}\nimport sys\nsys.exit(3)\n", encoding="utf-8")
+    fake.write_text(f"#!{sys.executable}\nimport sys, time\ntime.sleep(3)\nsys.exit(3)\n", encoding="utf-8")
     fake.chmod(0o755)
     return fake
 
