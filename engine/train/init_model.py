@@ -25,7 +25,7 @@ from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
 from ..geometry.quaternion import quat_conj, quat_identity, quat_mul, quat_normalize
 from .config import TrainConfig
 from .data import TrainingData
-from .lifespan import lifespan_seed_count, resolve_lifespan
+from .lifespan import data_lifespan, lifespan_seed_count
 from .model import DynamicScene
 
 
@@ -216,8 +216,7 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         canon = canonicalise(probe, pts, tms, None, cfg.bind_k, identity)
         g_dyn = None
     else:
-        life = resolve_lifespan(cfg.lifespan, cfg.lifespan_frames, data.times[data.train_idx],
-                                data.w2c[data.train_idx], data.extent, data.held_out_cameras)
+        life = data_lifespan(cfg, data)
         s_pts, s_cols, s_scl, _ = initial_gaussians(data, cfg, gen, static_only=True)
         # with lifespans only the moving Gaussians of the frames around t show at t: seed more
         seed_cfg = (dataclasses.replace(cfg, dynamic_gaussians=lifespan_seed_count(cfg, len(data.train_idx)))

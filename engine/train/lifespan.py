@@ -133,6 +133,16 @@ def resolve_lifespan(mode: str, frames: float, train_times: torch.Tensor, train_
     return float(frames * gap)
 
 
+def data_lifespan(cfg, data) -> float:
+    """:func:`resolve_lifespan` for training ``data`` (a :class:`~engine.train.data.TrainingData`)
+    under ``cfg``: its training frames' times and cameras, extent and held-out cameras. The one
+    call the initial model (``engine.train.init_model``) and :func:`run_has_lifespans` share, so
+    that the two decisions cannot part."""
+    train = data.train_idx
+    return resolve_lifespan(cfg.lifespan, cfg.lifespan_frames, data.times[train], data.w2c[train], data.extent,
+                            data.held_out_cameras)
+
+
 def run_has_lifespans(cfg, data) -> bool:
     """Whether training ``data`` (a :class:`~engine.train.data.TrainingData`) under ``cfg`` gives
     its moving Gaussians lifespans: the static / dynamic split is on, the dynamic prior calls
@@ -145,8 +155,7 @@ def run_has_lifespans(cfg, data) -> bool:
     train = data.train_idx.to(data.fg.device)
     if not bool((data.fg[train] >= cfg.dynamic_threshold).any()):
         return False
-    return resolve_lifespan(cfg.lifespan, cfg.lifespan_frames, data.times[data.train_idx],
-                            data.w2c[data.train_idx], data.extent, data.held_out_cameras) > 0
+    return data_lifespan(cfg, data) > 0
 
 
 @torch.no_grad()

@@ -31,10 +31,10 @@ from .config import TrainConfig
 from .data import TrainingData
 from .export import bundle_arrays, bundle_cameras
 from .evaluation import evaluate_frames, quality_lines, render_frame, spread_sample
+from .frame_order import resolve_frame_order, step_frame
 from .lifespan import camera_translates, clamp_lifespans_, shown_gaussians
 from .objective import Objective
 from .param_edit import make_optimizer  # noqa: F401  (re-exported)
-from .frame_order import resolve_frame_order, step_frame
 from .phases import no_phase
 from .render import render_scene, scene_colors
 from .split import freeze_static_nodes
