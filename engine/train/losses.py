@@ -89,6 +89,9 @@ def _blur_matrices(h: int, w: int, window: int, sigma: float, device, dtype):
 
 #: use engine/train/fused_ssim.py for CPU float32 images (tests switch it off to compare)
 FUSED_SSIM = True
+#: the L1 / coarse L1 / depth terms through engine/train/fused_image.py on the CPU (tests
+#: switch it off to compare with the torch versions)
+FUSED_IMAGE = True
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -149,6 +152,24 @@ def photometric(pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0
     return loss
 
 
+def image_l1_terms(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None,
+                   pools: tuple[int, ...] = ()) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(l1(pred, target, weight), coarse_l1(pred, target, weight, pools), mse)`` with
+    ``mse`` the mean squared error of ``clamp(pred, 0, 1)`` (for the PSNR metric, no
+    gradient); ``coarse`` is 0 when ``pools`` is empty. Images ``[H, W, C]``, ``weight
+    [H, W, 1]`` or None. CPU float32 images go through one fused pass (:mod:`.fused_image`),
+    everything else through :func:`l1` / :func:`coarse_l1` (the references)."""
+    if FUSED_IMAGE:
+        from .fused_image import fused_image_available, fused_l1_terms
+
+        if fused_image_available(pred, target, *([] if weight is None else [weight])):
+            return fused_l1_terms(pred, target, weight, tuple(pools))
+    coarse = coarse_l1(pred, target, weight, tuple(pools)) if pools else pred.new_zeros(())
+    with torch.no_grad():
+        mse = ((pred.detach().clamp(0, 1) - target) ** 2).mean()
+    return l1(pred, target, weight), coarse, mse
+
+
 def psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Peak signal-to-noise ratio in dB for images in [0, 1]; optional ``[H, W, 1]`` mask."""
     err = (pred - target) ** 2
@@ -190,17 +211,36 @@ def depth_shift_scale_invariant(pred: torch.Tensor, target: torch.Tensor, valid:
 def _affine_fit(t: torch.Tensor, p: torch.Tensor) -> tuple[float, float]:
     """``argmin_{s,b} Σ (s t + b − p)²`` for ``t, p [n]``, from the 2x2 normal equations in
     float64 (deterministic, unlike ``torch.linalg.lstsq`` on the CPU, which reads
-    uninitialised memory once torch no longer NaN-fills allocations -- see the trainer).
-    A constant ``t`` gets the least-norm solution, as a rank-revealing solver would."""
+    uninitialised memory once torch no longer NaN-fills allocations -- see the trainer)."""
     t64, p64 = t.double(), p.double()
-    n = float(t64.numel())
-    st, sp = float(t64.sum()), float(p64.sum())
-    stt, stp = float((t64 * t64).sum()), float((t64 * p64).sum())
+    return affine_from_sums(float(t64.numel()), float(t64.sum()), float(p64.sum()), float((t64 * t64).sum()),
+                            float((t64 * p64).sum()))
+
+
+def affine_from_sums(n: float, st: float, sp: float, stt: float, stp: float) -> tuple[float, float]:
+    """``(s, b)`` of the least-squares line ``p ≈ s t + b`` from the sums ``n, Σt, Σp, Σt²,
+    Σtp``. A constant ``t`` gets the least-norm solution, as a rank-revealing solver would."""
     det = n * stt - st * st
     if det <= 1e-12 * max(n * stt, 1e-300):
         c, m = st / n, sp / n
         return c * m / (c * c + 1.0), m / (c * c + 1.0)
     return (n * stp - st * sp) / det, (stt * sp - st * stp) / det
+
+
+def depth_term(depth_sum: torch.Tensor, alpha: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
+    """The training loss's depth term: :func:`depth_shift_scale_invariant` of the rendered
+    expected depth ``depth_sum / alpha`` (the rasteriser accumulates ``Σ w_i z_i``) against
+    ``prior``, over the pixels with ``prior > 0`` and ``alpha > 0.5``. All ``[H, W]``;
+    ``alpha`` is taken as a constant. CPU float32 goes through the fused kernel
+    (:mod:`.fused_image`), everything else through the torch ops below (the reference)."""
+    alpha = alpha.detach()
+    if FUSED_IMAGE:
+        from .fused_image import fused_depth_term, fused_image_available
+
+        if fused_image_available(depth_sum, alpha, prior):
+            return fused_depth_term(depth_sum, alpha, prior)
+    valid = (prior > 0) & (alpha > 0.5)
+    return depth_shift_scale_invariant(depth_sum / alpha.clamp_min(1e-6), prior, valid)
 
 
 def mask_loss(alpha: torch.Tensor, dyn_alpha: torch.Tensor, fg_prior: torch.Tensor) -> torch.Tensor:

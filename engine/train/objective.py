@@ -11,6 +11,8 @@ regions' distance maps ``mask_dist``.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ..geometry.camera import project, unproject
@@ -154,15 +156,16 @@ class Objective:
             # moving pixels are a few % of the image: weight them up so the objects get a
             # share of the photometric gradient that is not drowned by the background
             weight = (1.0 + w.rgb_dynamic * (d.fg[f] >= self.cfg.dynamic_threshold).to(target.dtype)).unsqueeze(-1)
-        terms = {"rgb": L.photometric(out.rgb, target, w.ssim, weight) * w.rgb}
+        # L1, the coarse L1 and the PSNR's squared error in one pass (L.photometric's L1 part)
+        l1, coarse, mse = L.image_l1_terms(out.rgb, target, weight, L.COARSE_POOLS if w.rgb_coarse > 0 else ())
+        rgb = (1.0 - w.ssim) * l1
+        if w.ssim > 0:
+            rgb = rgb + w.ssim * (1.0 - L.ssim(out.rgb, target))
+        terms = {"rgb": rgb * w.rgb}
         if w.rgb_coarse > 0:
-            terms["rgb_coarse"] = w.rgb_coarse * L.coarse_l1(out.rgb, target, weight)
+            terms["rgb_coarse"] = w.rgb_coarse * coarse
         if w.depth > 0 and d.depth is not None:
-            prior = d.depth[f]
-            valid = (prior > 0) & (out.alpha[..., 0].detach() > 0.5)
-            # the rasteriser accumulates sum(w_i z_i); divide by alpha for the expected depth
-            depth = out.depth[..., 0] / out.alpha[..., 0].detach().clamp_min(1e-6)
-            terms["depth"] = w.depth * L.depth_shift_scale_invariant(depth, prior, valid)
+            terms["depth"] = w.depth * L.depth_term(out.depth[..., 0], out.alpha[..., 0], d.depth[f])
         if out.extra is not None:  # a mask step (see the trainer's _loss)
             terms["mask"] = w.mask * L.mask_loss(out.alpha, out.extra, d.fg[f])
         if self.track_canon is not None and w.track > 0 and step >= self.cfg.warmup_static_steps:
@@ -213,7 +216,7 @@ class Objective:
         loss = sum(terms.values())
         with torch.no_grad():
             metrics = {k: float(v) for k, v in terms.items()}
-            metrics["psnr"] = float(L.psnr(out.rgb.clamp(0, 1), target))
+            metrics["psnr"] = -10.0 * math.log10(max(float(mse), 1e-12))  # L.psnr of the clamped render
         return loss, metrics, out
 
     # ---------------------------------------------------------------- dynamic Gaussians on the mask

@@ -67,6 +67,20 @@ def _ssim() -> None:
     fused_ssim(pred, torch.rand(16, 16, 3, generator=g)).backward()
 
 
+def _image() -> None:
+    from .fused_image import fused_depth_term, fused_l1_terms
+
+    g = torch.Generator().manual_seed(5)
+    pred = torch.rand(12, 10, 3, generator=g).requires_grad_(True)
+    target = torch.rand(12, 10, 3, generator=g)
+    weight = 1.0 + torch.rand(12, 10, 1, generator=g)
+    for w, pools in ((weight, (4, 8)), (None, ())):  # with and without the coarse term
+        l1, coarse, _mse = fused_l1_terms(pred, target, w, pools)
+        (l1 + coarse).backward()
+    depth_sum = torch.rand(12, 10, generator=g).requires_grad_(True)
+    fused_depth_term(depth_sum, torch.ones(12, 10), torch.rand(12, 10, generator=g) + 0.5).backward()
+
+
 def _deform() -> None:
     from .fused import fused_deform, fused_knn
 
@@ -108,7 +122,8 @@ def _reg() -> None:
 #: compile, in seconds (measured on a shared 2-core CPU at 97 s in all), so that the
 #: rate, and so the ETA, is about even through the stage.
 GROUPS = (("rasteriser", lambda: _raster(False), 43), ("rasteriser extra channel", lambda: _raster(True), 19),
-          ("SH colours", _sh, 3), ("SSIM", _ssim, 13), ("deformation", _deform, 10), ("regularisers", _reg, 9))
+          ("SH colours", _sh, 3), ("SSIM", _ssim, 13), ("image terms", _image, 15),
+          ("deformation", _deform, 10), ("regularisers", _reg, 9))
 
 
 def kernel_groups(device="cpu", backend: str = "auto") -> tuple:
