@@ -43,13 +43,36 @@ def _unit(q, g, normalize):
     return aw, ax, ay, az
 
 
+@njit(inline="always", **_JIT)
+def _resting(node_rest, idx, g):
+    """Whether every node of Gaussian ``g`` is at rest (``node_rest [N]`` uint8; empty: none)."""
+    if node_rest.shape[0] == 0:
+        return False
+    for k in range(idx.shape[1]):
+        if node_rest[idx[g, k]] == 0:
+            return False
+    return True
+
+
 @njit(parallel=True, **_JIT)
-def _forward(dqn, idx, w, x, q, normalize, out_x, out_q, blend, sgn):
+def _forward(dqn, idx, w, x, q, normalize, node_rest, out_x, out_q, blend, sgn, rest):
     """Per Gaussian (prange: each writes only its own rows). ``x [G, 3]``, ``q [G, 4]``,
-    ``w [G, K]`` float32 read as float64; ``q`` normalised here when ``normalize``."""
+    ``w [G, K]`` float32 read as float64; ``q`` normalised here when ``normalize``. A Gaussian
+    whose nodes are all at rest (``node_rest``) takes the identity as its blend (``rest [G]``
+    notes it for the backward)."""
     G, K = idx.shape
     for g in prange(G):
         b = blend[g]
+        if _resting(node_rest, idx, g):
+            rest[g] = 1
+            b[0] = 1.0
+            for c in range(1, 8):
+                b[c] = 0.0
+            for k in range(K):
+                sgn[g, k] = 1.0
+            _apply(b, x, q, g, normalize, out_x, out_q)
+            continue
+        rest[g] = 0
         piv = 0
         for k in range(1, K):
             if w[g, k] > w[g, piv]:
@@ -65,31 +88,38 @@ def _forward(dqn, idx, w, x, q, normalize, out_x, out_q, blend, sgn):
             ws = np.float64(w[g, k]) * s
             for c in range(8):
                 b[c] += ws * dqn[j, c]
-        n = np.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2] + b[3] * b[3])
-        if n < 1e-12:
-            n = 1e-12
-        rw, rx, ry, rz = b[0] / n, b[1] / n, b[2] / n, b[3] / n
-        dw, dx, dy, dz = b[4] / n, b[5] / n, b[6] / n, b[7] / n
-        # t = 2 vec(qd ⊗ conj(qr))
-        tx = 2.0 * (-dw * rx + dx * rw - dy * rz + dz * ry)
-        ty = 2.0 * (-dw * ry + dx * rz + dy * rw - dz * rx)
-        tz = 2.0 * (-dw * rz - dx * ry + dy * rx + dz * rw)
-        xx, yy, zz = rx * rx, ry * ry, rz * rz
-        xy, xz, yz, wx, wy, wz = rx * ry, rx * rz, ry * rz, rw * rx, rw * ry, rw * rz
-        px, py, pz = np.float64(x[g, 0]), np.float64(x[g, 1]), np.float64(x[g, 2])
-        out_x[g, 0] = (1 - 2 * (yy + zz)) * px + 2 * (xy - wz) * py + 2 * (xz + wy) * pz + tx
-        out_x[g, 1] = 2 * (xy + wz) * px + (1 - 2 * (xx + zz)) * py + 2 * (yz - wx) * pz + ty
-        out_x[g, 2] = 2 * (xz - wy) * px + 2 * (yz + wx) * py + (1 - 2 * (xx + yy)) * pz + tz
-        aw, ax, ay, az = _unit(q, g, normalize)
-        ow = rw * aw - rx * ax - ry * ay - rz * az
-        ox = rw * ax + rx * aw + ry * az - rz * ay
-        oy = rw * ay - rx * az + ry * aw + rz * ax
-        oz = rw * az + rx * ay - ry * ax + rz * aw
-        on = np.sqrt(ow * ow + ox * ox + oy * oy + oz * oz)
-        if on > 1e-12:
-            out_q[g, 0], out_q[g, 1], out_q[g, 2], out_q[g, 3] = ow / on, ox / on, oy / on, oz / on
-        else:
-            out_q[g, 0], out_q[g, 1], out_q[g, 2], out_q[g, 3] = 1.0, 0.0, 0.0, 0.0
+        _apply(b, x, q, g, normalize, out_x, out_q)
+
+
+@njit(inline="always", **_JIT)
+def _apply(b, x, q, g, normalize, out_x, out_q):
+    """Row ``g`` of the outputs from its blended (unnormalised) DQ ``b [8]`` (the rest of
+    :func:`_forward`'s per-Gaussian body, shared by the resting and the blended rows)."""
+    n = np.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2] + b[3] * b[3])
+    if n < 1e-12:
+        n = 1e-12
+    rw, rx, ry, rz = b[0] / n, b[1] / n, b[2] / n, b[3] / n
+    dw, dx, dy, dz = b[4] / n, b[5] / n, b[6] / n, b[7] / n
+    # t = 2 vec(qd ⊗ conj(qr))
+    tx = 2.0 * (-dw * rx + dx * rw - dy * rz + dz * ry)
+    ty = 2.0 * (-dw * ry + dx * rz + dy * rw - dz * rx)
+    tz = 2.0 * (-dw * rz - dx * ry + dy * rx + dz * rw)
+    xx, yy, zz = rx * rx, ry * ry, rz * rz
+    xy, xz, yz, wx, wy, wz = rx * ry, rx * rz, ry * rz, rw * rx, rw * ry, rw * rz
+    px, py, pz = np.float64(x[g, 0]), np.float64(x[g, 1]), np.float64(x[g, 2])
+    out_x[g, 0] = (1 - 2 * (yy + zz)) * px + 2 * (xy - wz) * py + 2 * (xz + wy) * pz + tx
+    out_x[g, 1] = 2 * (xy + wz) * px + (1 - 2 * (xx + zz)) * py + 2 * (yz - wx) * pz + ty
+    out_x[g, 2] = 2 * (xz - wy) * px + 2 * (yz + wx) * py + (1 - 2 * (xx + yy)) * pz + tz
+    aw, ax, ay, az = _unit(q, g, normalize)
+    ow = rw * aw - rx * ax - ry * ay - rz * az
+    ox = rw * ax + rx * aw + ry * az - rz * ay
+    oy = rw * ay - rx * az + ry * aw + rz * ax
+    oz = rw * az + rx * ay - ry * ax + rz * aw
+    on = np.sqrt(ow * ow + ox * ox + oy * oy + oz * oz)
+    if on > 1e-12:
+        out_q[g, 0], out_q[g, 1], out_q[g, 2], out_q[g, 3] = ow / on, ox / on, oy / on, oz / on
+    else:
+        out_q[g, 0], out_q[g, 1], out_q[g, 2], out_q[g, 3] = 1.0, 0.0, 0.0, 0.0
 
 
 @njit(parallel=True, **_JIT)
@@ -188,11 +218,13 @@ def _backward(dqn, idx, w, x, q, normalize, blend, sgn, gxo, gqo, gbs, g_x, g_q)
 
 
 @njit(**_JIT)
-def _scatter_nodes(idx, w, sgn, gbs, g_dqn):
+def _scatter_nodes(idx, w, sgn, gbs, rest, g_dqn):
     """Blend backward: scatter ``gbs [G, 8]`` to the node DQs in Gaussian order (serial, so
-    the float sums are deterministic)."""
+    the float sums are deterministic); resting rows (``rest [G]``) send nothing."""
     G, K = idx.shape
     for g in range(G):
+        if rest[g]:
+            continue
         for k in range(K):
             j = idx[g, k]
             ws = np.float64(w[g, k]) * sgn[g, k]
@@ -206,23 +238,26 @@ def _f32(t: torch.Tensor) -> np.ndarray:
 
 class _FusedDeform(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, dq_nodes, idx, w, means, quats, normalize):
+    def forward(ctx, dq_nodes, idx, w, means, quats, normalize, node_rest):
         dqn = dq_nodes.detach().double().contiguous().numpy()  # [N, 8]: small
         idx_np = idx.detach().contiguous().numpy()
         w_np, x, q = _f32(w), _f32(means), _f32(quats)
         G, K = idx_np.shape
+        rest_np = (np.zeros(0, np.uint8) if node_rest is None
+                   else node_rest.detach().to(torch.uint8).contiguous().numpy())
         out_x = np.empty((G, 3), np.float32)
         out_q = np.empty((G, 4), np.float32)
         blend = np.zeros((G, 8))
         sgn = np.empty((G, K))
+        rest = np.empty(G, np.uint8)
         with kernel_threads():
-            _forward(dqn, idx_np, w_np, x, q, bool(normalize), out_x, out_q, blend, sgn)
-        ctx.saved = (dqn, idx_np, w_np, x, q, bool(normalize), blend, sgn, dq_nodes.shape[0])
+            _forward(dqn, idx_np, w_np, x, q, bool(normalize), rest_np, out_x, out_q, blend, sgn, rest)
+        ctx.saved = (dqn, idx_np, w_np, x, q, bool(normalize), blend, sgn, rest, dq_nodes.shape[0])
         return torch.from_numpy(out_x), torch.from_numpy(out_q)
 
     @staticmethod
     def backward(ctx, g_out_x, g_out_q):
-        dqn, idx_np, w_np, x, q, normalize, blend, sgn, n_nodes = ctx.saved
+        dqn, idx_np, w_np, x, q, normalize, blend, sgn, rest, n_nodes = ctx.saved
         G = x.shape[0]
         gxo = np.zeros((G, 3), np.float32) if g_out_x is None else _f32(g_out_x)
         gqo = np.zeros((G, 4), np.float32) if g_out_q is None else _f32(g_out_q)
@@ -232,13 +267,14 @@ class _FusedDeform(torch.autograd.Function):
         g_q = np.empty((G, 4), np.float32)
         with kernel_threads():
             _backward(dqn, idx_np, w_np, x, q, normalize, blend, sgn, gxo, gqo, gbs, g_x, g_q)
-        _scatter_nodes(idx_np, w_np, sgn, gbs, g_dqn)
+        _scatter_nodes(idx_np, w_np, sgn, gbs, rest, g_dqn)
         return (torch.from_numpy(g_dqn).to(torch.float32), None, None, torch.from_numpy(g_x),
-                torch.from_numpy(g_q), None)
+                torch.from_numpy(g_q), None, None)
 
 
 def fused_deform(dq_nodes: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, means: torch.Tensor,
-                 quats: torch.Tensor, normalize: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+                 quats: torch.Tensor, normalize: bool = False,
+                 node_rest: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """DQB-deform canonical Gaussians (CPU, float32).
 
     Parameters
@@ -248,13 +284,16 @@ def fused_deform(dq_nodes: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, mea
     means : (G, 3) canonical centres; quats : (G, 4) canonical rotations, unit unless
         ``normalize`` (then divided by their norm inside the kernel, as ``quat_normalize``
         would, gradient included: no [G, 4] torch ops and their backward per step).
+    node_rest : (N,) bool or None: nodes whose transform is taken as the identity. A Gaussian
+        bound only to such nodes is not blended (its centre and rotation pass through, to
+        the float rounding of the rest transform) and sends no gradient to the node DQs.
 
     Returns
     -------
     means_t (G, 3), quats_t (G, 4): same values as ``dq_apply_points(dq, means)`` and
     ``dq_apply_rotations(dq, quats_unit)`` with ``dq = dq_blend(dq_nodes, idx, w)``.
     """
-    return _FusedDeform.apply(dq_nodes, idx, w, means, quats, normalize)
+    return _FusedDeform.apply(dq_nodes, idx, w, means, quats, normalize, node_rest)
 
 
 def fused_available(*tensors: torch.Tensor) -> bool:

@@ -29,6 +29,7 @@ from ..geometry.dualquat import dq_apply_points, dq_apply_rotations, dq_blend, n
 from ..geometry.hermite import catmull_rom_basis, catmull_rom_tangents, hermite_eval, hermite_eval_quat
 from ..geometry.quaternion import quat_identity, quat_normalize
 from .fused import fused_available, fused_deform
+from .fused_nodes import fused_node_state
 from .lifespan import lifespan_window
 from .motion_mlp import DeformMLP, positional_encoding  # noqa: F401 (re-exported)
 from .split import bind_within_class, knn_rbf
@@ -36,6 +37,12 @@ from .split import bind_within_class, knn_rbf
 # Use the fused CPU deformation (engine/train/fused.py) where it applies; the torch
 # path (gaussian_transforms + dq_apply_*) is the reference and the GPU path.
 FUSED_DEFORM = True
+#: node splines and transforms through engine/train/fused_nodes.py on the CPU (tests switch
+#: it off to compare with the torch ops)
+FUSED_NODES = True
+#: a node transform within this of the identity (dual part: times the scene extent) is the
+#: identity to float32 rounding: static nodes' rest keys reproduce their centres to ~2e-7
+REST_TOL = 1e-6
 
 SH_C0 = 0.28209479177387814
 
@@ -253,6 +260,8 @@ class DynamicScene(nn.Module):
         if getattr(self, "explicit_tangents", None) is None:
             # Catmull-Rom: the spline is the basis-weighted sum of the keys (same values as
             # hermite_eval with catmull_rom_tangents, to float rounding)
+            if self._fused_nodes():
+                return self.node_state_dq(t)[:2]
             lo, hi, b = self.spline_basis(t)
             b = b[None, :, None]
             pos = (self.pos_keys[:, lo:hi] * b).sum(1)
@@ -265,6 +274,22 @@ class DynamicScene(nn.Module):
         pos = hermite_eval(self.key_times, self.pos_keys, pos_tan, tt, tangents_in=pos_in)[:, 0]
         rot = hermite_eval_quat(self.key_times, self.rot_keys, rot_tan, tt, tangents_in=rot_in)[:, 0]
         return pos, rot
+
+    def _fused_nodes(self) -> bool:
+        """Whether :meth:`node_state_dq` takes the fused CPU kernel (Catmull-Rom splines)."""
+        return (FUSED_NODES and self.mlp is None and getattr(self, "explicit_tangents", None) is None
+                and fused_available(self.pos_keys, self.rot_keys, self.node_centers))
+
+    def node_state_dq(self, t: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`node_state` at ``t`` and the node transforms as dual quaternions ``[N, 8]``
+        (:func:`~engine.geometry.dualquat.node_transforms_dq`): what a training step needs,
+        in one fused pass on the CPU for Catmull-Rom splines (``engine/train/fused_nodes.py``;
+        the torch ops are the reference)."""
+        if self._fused_nodes():
+            lo, _hi, b = self.spline_basis(t)
+            return fused_node_state(self.pos_keys, self.rot_keys, lo, b, self.node_centers)
+        pos, rot = self.node_state(t)
+        return pos, rot, node_transforms_dq(self.node_centers, pos, rot)
 
     def node_states(self, times, nodes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Positions ``[S, T, 3]`` and unit quaternions ``[S, T, 4]`` of the nodes ``nodes [S]``
@@ -294,8 +319,24 @@ class DynamicScene(nn.Module):
 
     def node_dq(self, t: float) -> torch.Tensor:
         """Node transforms at time ``t`` as unit dual quaternions [N, 8]."""
-        pos, rot = self.node_state(t)
-        return node_transforms_dq(self.node_centers, pos, rot)
+        return self.node_state_dq(t)[2]
+
+    @torch.no_grad()
+    def resting_nodes(self, dq_nodes: torch.Tensor) -> torch.Tensor | None:
+        """``[N] bool``: the static nodes whose transform ``dq_nodes [N, 8]`` is the identity
+        to float rounding (``REST_TOL``, the dual part relative to the scene extent), or None
+        when no node can be (no split, or MLP motion, whose static nodes are not frozen).
+
+        Why: with the split, static nodes keep their rest keys (their key gradients are
+        zeroed, ``split.freeze_static_nodes``), so the Gaussians bound to them are undeformed
+        by design; blending them anyway was three quarters of the deformation's work on a
+        typical scene. The transform is still checked, so a static node moved on purpose
+        (keys edited in Blender and fine-tuned) deforms its Gaussians as before."""
+        if self.mlp is not None or self.pos_keys is None or self.node_dyn.all():
+            return None
+        dev = (dq_nodes - dq_nodes.new_tensor([1.0, 0, 0, 0, 0, 0, 0, 0])).abs()
+        near = (dev[:, :4].amax(1) <= REST_TOL) & (dev[:, 4:].amax(1) <= REST_TOL * max(1.0, float(self.extent)))
+        return ~self.node_dyn & near
 
     def deform(self, t: float, dq_nodes: torch.Tensor | None = None,
                index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -312,9 +353,11 @@ class DynamicScene(nn.Module):
             means, quats, bind_idx, bind_w = means[index], quats[index], bind_idx[index], bind_w[index]
         if FUSED_DEFORM and fused_available(means, quats, bind_w):
             # one Numba pass (forward + hand-written backward) instead of ~100 [G, K, 8]
-            # torch ops; same values as the torch reference below (engine/train/fused.py)
+            # torch ops; same values as the torch reference below (engine/train/fused.py),
+            # the static Gaussians passed through unblended
             dq_nodes = self.node_dq(t) if dq_nodes is None else dq_nodes
-            return fused_deform(dq_nodes, bind_idx, bind_w, means, quats, normalize=True)
+            return fused_deform(dq_nodes, bind_idx, bind_w, means, quats, normalize=True,
+                                node_rest=self.resting_nodes(dq_nodes))
         dq_nodes = self.node_dq(t) if dq_nodes is None else dq_nodes
         dq = dq_blend(dq_nodes, bind_idx, bind_w)
         return dq_apply_points(dq, means), dq_apply_rotations(dq, quat_normalize(quats))

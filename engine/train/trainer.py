@@ -24,7 +24,6 @@ import torch
 from .. import bundle as B
 from ..errors import Cancelled, InputError
 from ..fsutil import atomic_path
-from ..geometry.dualquat import node_transforms_dq
 from ..protocol import Reporter
 from . import checkpoint as CK
 from .config import TrainConfig
@@ -161,8 +160,7 @@ class Trainer:
             # of a long clip are outside their window and would change no pixel (lifespan.py)
             shown = shown_gaussians(m, t) if CULL_HIDDEN else None
             # node state at t once per step: the deformation, the track term and ARAP share it
-            pos_t, rot_t = m.node_state(t)
-            dq_nodes = node_transforms_dq(m.node_centers, pos_t, rot_t)
+            pos_t, rot_t, dq_nodes = m.node_state_dq(t)
             means_t, quats_t = m.deform(t, dq_nodes=dq_nodes, index=shown)
         with ph("sh"):  # the colour raster.render would compute from sh=..., timed on its own
             colors = scene_colors(m, means_t, d.w2c[f], index=shown)

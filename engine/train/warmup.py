@@ -81,6 +81,17 @@ def _image() -> None:
     fused_depth_term(depth_sum, torch.ones(12, 10), torch.rand(12, 10, generator=g) + 0.5).backward()
 
 
+def _nodes() -> None:
+    from .fused_nodes import fused_node_state
+
+    g = torch.Generator().manual_seed(6)
+    n, k = 6, 5
+    pos = torch.randn(n, k, 3, generator=g).requires_grad_(True)
+    rot = torch.randn(n, k, 4, generator=g).requires_grad_(True)
+    p, r, dq = fused_node_state(pos, rot, 1, torch.tensor([0.1, 0.6, 0.4, -0.1]), torch.randn(n, 3, generator=g))
+    (p.sum() + r.sum() + dq.sum()).backward()
+
+
 def _deform() -> None:
     from .fused import fused_deform, fused_knn
 
@@ -94,8 +105,10 @@ def _deform() -> None:
     w = torch.full((gauss, k), 1.0 / k)
     means = pts.clone().requires_grad_(True)
     quats = torch.nn.functional.normalize(torch.randn(gauss, 4, generator=g), dim=-1).requires_grad_(True)
-    for normalize in (False, True):
-        x, q = fused_deform(dq, idx, w, means, quats, normalize=normalize)
+    rest = torch.zeros(nodes, dtype=torch.bool)
+    rest[:3] = True
+    for normalize, node_rest in ((False, None), (True, None), (True, rest)):
+        x, q = fused_deform(dq, idx, w, means, quats, normalize=normalize, node_rest=node_rest)
         (x.sum() + q.sum()).backward()
 
 
@@ -123,7 +136,7 @@ def _reg() -> None:
 #: rate, and so the ETA, is about even through the stage.
 GROUPS = (("rasteriser", lambda: _raster(False), 43), ("rasteriser extra channel", lambda: _raster(True), 19),
           ("SH colours", _sh, 3), ("SSIM", _ssim, 13), ("image terms", _image, 15),
-          ("deformation", _deform, 10), ("regularisers", _reg, 9))
+          ("node splines", _nodes, 4), ("deformation", _deform, 19), ("regularisers", _reg, 9))
 
 
 def kernel_groups(device="cpu", backend: str = "auto") -> tuple:

@@ -82,3 +82,48 @@ def test_fused_knn_matches_geometry_knn():
     ref, _ = knn_nodes(pts, nodes, 4)
     assert torch.equal(fused_knn(pts, nodes, 4), ref)
     assert torch.equal(fused_knn(pts, nodes, 4), fused_knn(pts, nodes, 4))
+
+
+def test_static_gaussians_at_rest_pass_through_and_the_rest_match_the_reference():
+    """With the split, Gaussians bound only to static nodes whose transform is the identity
+    (rest keys) are not blended: their centres come back unchanged, their rotations
+    normalised, and the moving Gaussians get the reference's values and gradients."""
+    m = _scene(seed=5)
+    n = m.num_nodes
+    static = torch.arange(n) % 3 == 0
+    with torch.no_grad():
+        m.node_dyn.copy_(~static)
+        m.pos_keys[static] = m.node_centers[static][:, None]  # rest keys
+        m.rot_keys[static] = torch.tensor([2.0, 0.0, 0.0, 0.0])  # identity, not unit
+        m.gauss_dyn.copy_(torch.arange(m.num_gaussians) % 4 != 0)
+    m.rebind()
+    rest = ~m.node_dyn[m.bind_idx].any(1)
+    assert 100 < int(rest.sum()) < m.num_gaussians - 100
+    dq = m.node_dq(0.37)
+    assert bool(m.resting_nodes(dq)[static].all()) and not bool(m.resting_nodes(dq)[~static].any())
+    ref, fus = _run(m, False), _run(m, True)
+    assert torch.equal(fus[0][rest], m.means.detach()[rest])
+    q = m.quats.detach()[rest]
+    assert torch.allclose(fus[1][rest], q / q.norm(dim=1, keepdim=True), atol=1e-6)
+    for name, r, f in zip(["means_t", "quats_t", "g_means", "g_quats"], ref, fus):
+        tol = 1e-5 * (1.0 + float(r.abs().max()))
+        assert torch.allclose(r, f, atol=tol, rtol=1e-4), (name, float((r - f).abs().max()))
+    # the moving nodes' key gradients are the reference's; the static ones get none
+    dyn = ~static
+    for r, f in zip(ref[4:], fus[4:]):
+        assert torch.allclose(r[dyn], f[dyn], atol=1e-5 * (1.0 + float(r.abs().max())), rtol=1e-4)
+        assert float(f[static].abs().sum()) == 0.0
+
+
+def test_a_static_node_moved_on_purpose_still_deforms_its_gaussians():
+    """A static node whose keys were edited (not at rest) is not taken as the identity."""
+    m = _scene(seed=6)
+    static = torch.arange(m.num_nodes) % 2 == 0
+    with torch.no_grad():
+        m.node_dyn.copy_(~static)
+        m.pos_keys[static] = m.node_centers[static][:, None] + torch.tensor([0.0, 0.2, 0.0])
+        m.rot_keys[static] = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    m.rebind()
+    assert not bool(m.resting_nodes(m.node_dq(0.5)).any())
+    ref, fus = _run(m, False, t=0.5), _run(m, True, t=0.5)
+    assert torch.allclose(ref[0], fus[0], atol=1e-5)
