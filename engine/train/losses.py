@@ -318,6 +318,25 @@ def on_mask_loss(uv: torch.Tensor, dist: torch.Tensor, scale: float) -> torch.Te
     return F.huber_loss(d, torch.zeros_like(d), delta=0.05, reduction="sum") / uv.shape[0]
 
 
+def on_mask_term(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, dist: torch.Tensor,
+                 scale: float) -> torch.Tensor:
+    """:func:`on_mask_loss` of world points ``points [P, 3]`` projected by the camera ``K [3, 3]``,
+    ``w2c [4, 4]``; points behind the camera are not scored (they count 0). CPU float32 goes
+    through one fused pass (:mod:`.fused_points`), everything else through
+    :func:`~engine.geometry.camera.project` and :func:`on_mask_loss` (the reference)."""
+    if FUSED_IMAGE:
+        from .fused_image import fused_image_available
+        from .fused_points import fused_on_mask
+
+        if fused_image_available(points, K, w2c, dist):
+            return fused_on_mask(points, K, w2c, dist, scale)
+    from ..geometry.camera import project
+
+    uv, z = project(K, w2c, points)
+    uv = torch.where((z > 0).unsqueeze(-1), uv, uv.new_tensor(-1.0))  # behind the camera: not scored
+    return on_mask_loss(uv, dist, scale)
+
+
 def arap_loss(pos_t0: torch.Tensor, pos_t1: torch.Tensor, rot_t1: torch.Tensor, graph_idx: torch.Tensor,
               graph_w: torch.Tensor | None = None) -> torch.Tensor:
     """As-rigid-as-possible on the node graph between two times.

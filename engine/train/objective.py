@@ -252,10 +252,9 @@ class Objective:
             return None
         if len(dyn) > 4096:
             dyn = dyn[torch.randperm(len(dyn), generator=self.gen)[:4096].to(dyn.device)]
-        centres = means_t[dyn] if shown is None else m.deform(t, dq_nodes=dq_nodes, index=dyn)[0]
-        uv, z = project(d.K[f], d.w2c[f], centres)
-        uv = torch.where((z > 0).unsqueeze(-1), uv, uv.new_tensor(-1.0))  # behind the camera: not scored
-        return L.on_mask_loss(uv, self.mask_dist[f], float(d.width) / 100.0)
+        centres = torch.index_select(means_t, 0, dyn) if shown is None else m.deform(t, dq_nodes=dq_nodes,
+                                                                                    index=dyn)[0]
+        return L.on_mask_term(centres, d.K[f], d.w2c[f], self.mask_dist[f], float(d.width) / 100.0)
 
     # ---------------------------------------------------------------- static motion
     def static_motion(self, model: DynamicScene, pos_t: torch.Tensor, rot_t: torch.Tensor,

@@ -69,6 +69,7 @@ def _ssim() -> None:
 
 def _image() -> None:
     from .fused_image import fused_depth_term, fused_l1_terms
+    from .fused_points import fused_on_mask
 
     g = torch.Generator().manual_seed(5)
     pred = torch.rand(12, 10, 3, generator=g).requires_grad_(True)
@@ -79,6 +80,9 @@ def _image() -> None:
         (l1 + coarse).backward()
     depth_sum = torch.rand(12, 10, generator=g).requires_grad_(True)
     fused_depth_term(depth_sum, torch.ones(12, 10), torch.rand(12, 10, generator=g) + 0.5).backward()
+    points = (torch.rand(8, 3, generator=g) + torch.tensor([0.0, 0.0, 2.0])).requires_grad_(True)
+    K = torch.tensor([[10.0, 0.0, 5.0], [0.0, 10.0, 6.0], [0.0, 0.0, 1.0]])
+    fused_on_mask(points, K, torch.eye(4), torch.rand(12, 10, generator=g), 0.1).backward()
 
 
 def _nodes() -> None:

@@ -43,9 +43,10 @@ def _dispatchers():
     from numba.core.dispatcher import Dispatcher
 
     from engine.raster import cpu_numba
-    from engine.train import fused, fused_image, fused_nodes, fused_reg, fused_sh, fused_ssim
+    from engine.train import fused, fused_image, fused_nodes, fused_points, fused_reg, fused_sh, fused_ssim
 
-    return {(m.__name__, name): d for m in (cpu_numba, fused, fused_image, fused_nodes, fused_reg, fused_sh, fused_ssim)
+    return {(m.__name__, name): d for m in (cpu_numba, fused, fused_image, fused_nodes, fused_points, fused_reg,
+                                                   fused_sh, fused_ssim)
             for name, d in vars(m).items() if isinstance(d, Dispatcher)}
 
 
