@@ -1,5 +1,5 @@
-"""Fused CPU on-mask term: projected points scored against a distance map, in one Numba
-pass with its gradient.
+"""Fused CPU point terms: projected points scored against a distance map (on-mask) and
+against their 2D tracks (track), each in one Numba pass with its gradient.
 
 The training step pulls up to 4096 dynamic Gaussians onto the moving region of its frame
 (:meth:`engine.train.objective.Objective.on_mask`): project, drop the points behind the
@@ -16,6 +16,10 @@ on_mask(points, K, w2c, dist, scale)
     with aligned corners), for the points in front of the camera whose ``(u, v)`` lies in the
     image; the others count 0 but stay in ``P``. Backward: the Huber slope, the bilinear
     slope (0 along a clamped axis), the pinhole's Jacobian, then ``Rᵀ`` to world space.
+track(points, K, w2c, target_uv, scale)
+    :func:`engine.train.losses.track_loss` of the projected points (every point visible):
+    the mean over both coordinates of ``huber((uv − target) / scale, δ = 0.05)``; the
+    reference is ``project`` then ``track_loss``.
 """
 
 from __future__ import annotations
@@ -38,6 +42,58 @@ def _at(dist, y, x):
     return 0.0
 
 
+@njit(inline="always", **_JIT)
+def _pinhole(x, p, kin, w2c):
+    """Camera coordinates and pixel of point ``p``: ``(cx, cy, cz, zs, u, v)`` with ``zs`` the
+    depth :func:`engine.geometry.camera.project` divides by (``|z| < 1e-12`` -> 1e-12)."""
+    X, Y, Z = np.float64(x[p, 0]), np.float64(x[p, 1]), np.float64(x[p, 2])
+    cx = w2c[0, 0] * X + w2c[0, 1] * Y + w2c[0, 2] * Z + w2c[0, 3]
+    cy = w2c[1, 0] * X + w2c[1, 1] * Y + w2c[1, 2] * Z + w2c[1, 3]
+    cz = w2c[2, 0] * X + w2c[2, 1] * Y + w2c[2, 2] * Z + w2c[2, 3]
+    zs = cz if abs(cz) >= 1e-12 else 1e-12
+    u = kin[0] * cx / zs + kin[1] * cy / zs + kin[2]
+    v = kin[3] * cy / zs + kin[4]
+    return cx, cy, cz, zs, u, v
+
+
+@njit(inline="always", **_JIT)
+def _pinhole_back(grad, p, gu, gv, cx, cy, cz, zs, kin, w2c):
+    """``grad[p]`` = the world-space gradient of a pixel gradient ``(gu, gv)``."""
+    gxn = gu * kin[0]
+    gyn = gu * kin[1] + gv * kin[3]
+    gcx = gxn / zs
+    gcy = gyn / zs
+    gcz = -(gxn * cx + gyn * cy) / (zs * zs) if abs(cz) >= 1e-12 else 0.0
+    grad[p, 0] = w2c[0, 0] * gcx + w2c[1, 0] * gcy + w2c[2, 0] * gcz
+    grad[p, 1] = w2c[0, 1] * gcx + w2c[1, 1] * gcy + w2c[2, 1] * gcz
+    grad[p, 2] = w2c[0, 2] * gcx + w2c[1, 2] * gcy + w2c[2, 2] * gcz
+
+
+@njit(inline="always", **_JIT)
+def _huber(d, delta):
+    """``(huber(d), slope)`` with the slope ``d`` inside ``delta`` and ``± delta`` beyond."""
+    a = abs(d)
+    if a < delta:
+        return 0.5 * d * d, d
+    return delta * (a - 0.5 * delta), (delta if d > 0.0 else -delta)
+
+
+@njit(**_JIT)
+def _track(x, kin, w2c, target, scale, delta, grad):
+    """Value of the track term for points ``x [P, 3]`` against ``target [P, 2]`` pixels;
+    ``grad [P, 3]`` (float64) gets its gradient."""
+    P = x.shape[0]
+    total = 0.0
+    inv = 1.0 / (2 * P)
+    for p in range(P):
+        cx, cy, cz, zs, u, v = _pinhole(x, p, kin, w2c)
+        hu, su = _huber((u - np.float64(target[p, 0])) / scale, delta)
+        hv, sv = _huber((v - np.float64(target[p, 1])) / scale, delta)
+        total += hu + hv
+        _pinhole_back(grad, p, su / scale * inv, sv / scale * inv, cx, cy, cz, zs, kin, w2c)
+    return total * inv
+
+
 @njit(**_JIT)
 def _on_mask(x, kin, w2c, dist, scale, delta, grad):
     """Value of the term for points ``x [P, 3]``; ``grad [P, 3]`` (float64) gets its gradient.
@@ -50,17 +106,9 @@ def _on_mask(x, kin, w2c, dist, scale, delta, grad):
         grad[p, 0] = 0.0
         grad[p, 1] = 0.0
         grad[p, 2] = 0.0
-        X, Y, Z = np.float64(x[p, 0]), np.float64(x[p, 1]), np.float64(x[p, 2])
-        cx = w2c[0, 0] * X + w2c[0, 1] * Y + w2c[0, 2] * Z + w2c[0, 3]
-        cy = w2c[1, 0] * X + w2c[1, 1] * Y + w2c[1, 2] * Z + w2c[1, 3]
-        cz = w2c[2, 0] * X + w2c[2, 1] * Y + w2c[2, 2] * Z + w2c[2, 3]
+        cx, cy, cz, zs, u, v = _pinhole(x, p, kin, w2c)
         if not cz > 0.0:  # behind the camera: not scored
             continue
-        zs = cz if cz >= 1e-12 else 1e-12
-        xn = cx / zs
-        yn = cy / zs
-        u = kin[0] * xn + kin[1] * yn + kin[2]
-        v = kin[3] * yn + kin[4]
         if not (u >= 0.0 and u < W and v >= 0.0 and v < H):
             continue
         ix = u - 0.5
@@ -76,35 +124,49 @@ def _on_mask(x, kin, w2c, dist, scale, delta, grad):
         v00, v01 = _at(dist, y0, x0), _at(dist, y0, x0 + 1)
         v10, v11 = _at(dist, y0 + 1, x0), _at(dist, y0 + 1, x0 + 1)
         s = (1.0 - wy) * ((1.0 - wx) * v00 + wx * v01) + wy * ((1.0 - wx) * v10 + wx * v11)
-        d = s / scale
-        if d < delta:
-            total += 0.5 * d * d
-            slope = d
-        else:
-            total += delta * (d - 0.5 * delta)
-            slope = delta
+        h, slope = _huber(s / scale, delta)
+        total += h
         gs = slope / scale * inv_p
         gu = gs * gxc * ((1.0 - wy) * (v01 - v00) + wy * (v11 - v10))
         gv = gs * gyc * ((1.0 - wx) * (v10 - v00) + wx * (v11 - v01))
-        gxn = gu * kin[0]
-        gyn = gu * kin[1] + gv * kin[3]
-        gcx = gxn / zs
-        gcy = gyn / zs
-        gcz = -(gxn * cx + gyn * cy) / (zs * zs) if cz >= 1e-12 else 0.0
-        grad[p, 0] = w2c[0, 0] * gcx + w2c[1, 0] * gcy + w2c[2, 0] * gcz
-        grad[p, 1] = w2c[0, 1] * gcx + w2c[1, 1] * gcy + w2c[2, 1] * gcz
-        grad[p, 2] = w2c[0, 2] * gcx + w2c[1, 2] * gcy + w2c[2, 2] * gcz
+        _pinhole_back(grad, p, gu, gv, cx, cy, cz, zs, kin, w2c)
     return total * inv_p
+
+
+def _camera(K, w2c):
+    k = K.detach().double().cpu()
+    kin = np.array([float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1]), float(k[1, 2])])
+    return kin, w2c.detach().double().cpu().contiguous().numpy()
+
+
+class _FusedTrack(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, points, K, w2c, target_uv, scale):
+        kin, view = _camera(K, w2c)
+        grad = np.empty((points.shape[0], 3))
+        val = _track(_f32(points), kin, view, _f32(target_uv), float(scale), HUBER_DELTA, grad) if len(points) else 0.0
+        ctx.grad = grad
+        ctx.dtype = points.dtype
+        return points.new_tensor(val)
+
+    @staticmethod
+    def backward(ctx, g):
+        return torch.from_numpy(ctx.grad * float(g)).to(ctx.dtype), None, None, None, None
+
+
+def fused_track(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, target_uv: torch.Tensor,
+                scale: float) -> torch.Tensor:
+    """The track term of world points ``points [P, 3]`` (differentiable) against their tracks'
+    pixels ``target_uv [P, 2]`` in the camera ``K``, ``w2c`` (module docstring)."""
+    return _FusedTrack.apply(points, K, w2c, target_uv, scale)
 
 
 class _FusedOnMask(torch.autograd.Function):
     @staticmethod
     def forward(ctx, points, K, w2c, dist, scale):
-        k = K.detach().double().cpu()
-        kin = np.array([float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1]), float(k[1, 2])])
+        kin, view = _camera(K, w2c)
         grad = np.empty((points.shape[0], 3))
-        val = _on_mask(_f32(points), kin, w2c.detach().double().cpu().contiguous().numpy(), _f32(dist),
-                       float(scale), HUBER_DELTA, grad)
+        val = _on_mask(_f32(points), kin, view, _f32(dist), float(scale), HUBER_DELTA, grad) if len(points) else 0.0
         ctx.grad = grad
         ctx.dtype = points.dtype
         return points.new_tensor(val)

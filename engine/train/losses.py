@@ -271,6 +271,24 @@ def track_loss(proj_uv: torch.Tensor, target_uv: torch.Tensor, visible: torch.Te
     return F.huber_loss(d, torch.zeros_like(d), delta=0.05, reduction="mean")
 
 
+def track_term(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, target_uv: torch.Tensor,
+               scale: float) -> torch.Tensor:
+    """:func:`track_loss` of world points ``points [P, 3]`` projected by the camera ``K [3, 3]``,
+    ``w2c [4, 4]`` against their tracks' pixels ``target_uv [P, 2]``, every point visible. CPU
+    float32 goes through one fused pass (:mod:`.fused_points`), everything else through
+    :func:`~engine.geometry.camera.project` and :func:`track_loss` (the reference)."""
+    if FUSED_IMAGE:
+        from .fused_image import fused_image_available
+        from .fused_points import fused_track
+
+        if fused_image_available(points, K, w2c, target_uv):
+            return fused_track(points, K, w2c, target_uv, scale)
+    from ..geometry.camera import project
+
+    uv, _ = project(K, w2c, points)
+    return track_loss(uv, target_uv, torch.ones(points.shape[0], dtype=torch.bool, device=points.device), scale)
+
+
 def mask_distance(fg: torch.Tensor, threshold: float) -> torch.Tensor:
     """Distance in px from every pixel to the nearest moving pixel, per frame.
 

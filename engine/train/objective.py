@@ -15,7 +15,7 @@ import math
 
 import torch
 
-from ..geometry.camera import project, unproject
+from ..geometry.camera import unproject
 from ..geometry.quaternion import quat_normalize
 from . import losses as L
 from .config import TrainConfig
@@ -176,12 +176,10 @@ class Objective:
                     sel = sel[torch.randperm(len(sel), generator=self.gen)[:1024].to(sel.device)]
                 x = m.deform_points(self.track_canon[sel], self.track_idx[sel], self.track_w[sel], t,
                                     dq_nodes=dq_nodes)
-                uv, _ = project(d.K[f], d.w2c[f], x)
                 target_uv = d.tracks_xy[self.track_ids[sel], f]
                 # in % of the image width (Huber, linear beyond 0.05 %): at the width of the
                 # image the term vanished next to the photometric one (a 10 px error cost 1e-4)
-                terms["track"] = w.track * L.track_loss(uv, target_uv, torch.ones_like(sel, dtype=torch.bool),
-                                                        float(d.width) / 100.0)
+                terms["track"] = w.track * L.track_term(x, d.K[f], d.w2c[f], target_uv, float(d.width) / 100.0)
         if w.on_mask > 0 and step >= self.cfg.warmup_static_steps:
             on_mask = self.on_mask(m, f, t, means_t, dq_nodes, shown)
             if on_mask is not None:

@@ -69,7 +69,7 @@ def _ssim() -> None:
 
 def _image() -> None:
     from .fused_image import fused_depth_term, fused_l1_terms
-    from .fused_points import fused_on_mask
+    from .fused_points import fused_on_mask, fused_track
 
     g = torch.Generator().manual_seed(5)
     pred = torch.rand(12, 10, 3, generator=g).requires_grad_(True)
@@ -83,6 +83,7 @@ def _image() -> None:
     points = (torch.rand(8, 3, generator=g) + torch.tensor([0.0, 0.0, 2.0])).requires_grad_(True)
     K = torch.tensor([[10.0, 0.0, 5.0], [0.0, 10.0, 6.0], [0.0, 0.0, 1.0]])
     fused_on_mask(points, K, torch.eye(4), torch.rand(12, 10, generator=g), 0.1).backward()
+    fused_track(points, K, torch.eye(4), torch.rand(8, 2, generator=g), 0.1).backward()
 
 
 def _nodes() -> None:

@@ -102,8 +102,8 @@ def test_fused_depth_term_without_enough_valid_pixels_is_zero():
 
 
 def test_trainer_terms_are_the_same_fused_or_not(tmp_path, monkeypatch):
-    """One training step's photometric, coarse, depth and on-mask terms, PSNR and Gaussian
-    gradients with the fused image terms and with the torch ones."""
+    """One training step's photometric, coarse, depth, on-mask and track terms, PSNR and
+    Gaussian gradients with the fused image and point terms and with the torch ones."""
     from engine.train import trainer as T
     from engine.train.config import preset_config
 
@@ -122,7 +122,7 @@ def test_trainer_terms_are_the_same_fused_or_not(tmp_path, monkeypatch):
         loss.backward()
         res[fused] = (metrics, tr.model.means.grad.clone(), tr.model.opacity_logits.grad.clone())
     (m1, gm1, go1), (m0, gm0, go0) = res[True], res[False]
-    for name in ("rgb", "rgb_coarse", "depth", "psnr", "on_mask"):
+    for name in ("rgb", "rgb_coarse", "depth", "psnr", "on_mask", "track"):
         assert m0[name] > 0, name
         assert m1[name] == pytest.approx(m0[name], rel=1e-5), name
     assert _rel(gm1, gm0) <= 1e-4 and _rel(go1, go0) <= 1e-4

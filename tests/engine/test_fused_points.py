@@ -70,3 +70,23 @@ def test_no_point_in_view_gives_zero():
     v = fused_on_mask(x, K, w2c, dist, 0.4)
     v.backward()
     assert float(v.detach()) == 0.0 and float(x.grad.abs().sum()) == 0.0
+
+
+@pytest.mark.parametrize("scale", [0.4, 40.0])  # mostly linear / mostly quadratic Huber
+def test_fused_track_matches_torch(scale):
+    from engine.train.fused_points import fused_track
+
+    pts, K, w2c, _ = _setup(4, p=300)
+    pts = pts[project(K, w2c, pts)[1] > 0.05]  # the track term scores points in front
+    g = torch.Generator().manual_seed(9)
+    target = project(K, w2c, pts)[0] + 3.0 * torch.randn(len(pts), 2, generator=g)
+    ref_in = pts.double().requires_grad_(True)
+    uv, _ = project(K.double(), w2c.double(), ref_in)
+    ref = L.track_loss(uv, target.double(), torch.ones(len(pts), dtype=torch.bool), scale)
+    (1.5 * ref).backward()
+    fus_in = pts.clone().requires_grad_(True)
+    val = fused_track(fus_in, K, w2c, target, scale)
+    (1.5 * val).backward()
+    assert float(ref.detach()) > 1e-4
+    assert float(val.detach()) == pytest.approx(float(ref.detach()), rel=1e-5)
+    assert float((fus_in.grad.double() - ref_in.grad).norm() / ref_in.grad.norm()) <= 1e-4
