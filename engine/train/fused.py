@@ -122,13 +122,49 @@ def _apply(b, x, q, g, normalize, out_x, out_q):
         out_q[g, 0], out_q[g, 1], out_q[g, 2], out_q[g, 3] = 1.0, 0.0, 0.0, 0.0
 
 
+@njit(inline="always", **_JIT)
+def _canonical_quat_grad(q, g, normalize, ea, eb, ec, ed, g_q):
+    """``g_q[g]`` from the gradient ``e`` of the unit canonical rotation ``a``: through
+    ``a = q / max(|q|, eps)`` when ``normalize`` (``(e − a (a·e)) / |q|``), else ``e``."""
+    if normalize:
+        aw, ax, ay, az = _unit(q, g, True)
+        qw, qx, qy, qz = np.float64(q[g, 0]), np.float64(q[g, 1]), np.float64(q[g, 2]), np.float64(q[g, 3])
+        qn = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if qn > 1e-12:
+            da = aw * ea + ax * eb + ay * ec + az * ed
+            ea, eb, ec, ed = (ea - aw * da) / qn, (eb - ax * da) / qn, (ec - ay * da) / qn, (ed - az * da) / qn
+        else:
+            ea, eb, ec, ed = ea / 1e-12, eb / 1e-12, ec / 1e-12, ed / 1e-12
+    g_q[g, 0], g_q[g, 1], g_q[g, 2], g_q[g, 3] = ea, eb, ec, ed
+
+
+@njit(inline="always", **_JIT)
+def _resting_backward(q, g, normalize, gxo, gqo, g_x, g_q):
+    """Backward of a resting row (identity blend: ``x' = x``, ``q' = a / |a|``); it sends
+    nothing to the nodes, so only ``g_x``, ``g_q`` are written."""
+    g_x[g, 0], g_x[g, 1], g_x[g, 2] = gxo[g, 0], gxo[g, 1], gxo[g, 2]
+    aw, ax, ay, az = _unit(q, g, normalize)
+    on = np.sqrt(aw * aw + ax * ax + ay * ay + az * az)
+    if on > 1e-12:
+        uw, ux, uy, uz = aw / on, ax / on, ay / on, az / on
+        hw, hx, hy, hz = np.float64(gqo[g, 0]), np.float64(gqo[g, 1]), np.float64(gqo[g, 2]), np.float64(gqo[g, 3])
+        d = uw * hw + ux * hx + uy * hy + uz * hz
+        _canonical_quat_grad(q, g, normalize, (hw - uw * d) / on, (hx - ux * d) / on, (hy - uy * d) / on,
+                             (hz - uz * d) / on, g_q)
+    else:
+        g_q[g, 0], g_q[g, 1], g_q[g, 2], g_q[g, 3] = 0.0, 0.0, 0.0, 0.0
+
+
 @njit(parallel=True, **_JIT)
-def _backward(dqn, idx, w, x, q, normalize, blend, sgn, gxo, gqo, gbs, g_x, g_q):
+def _backward(dqn, idx, w, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x, g_q):
     """Per Gaussian (prange): gradients to ``x``, ``q`` (through the normalisation when
     ``normalize``) and to the blended DQ, ``gbs [G, 8]``; :func:`_scatter_nodes` then sums
-    those into the node DQs serially."""
+    those into the node DQs serially. Resting rows (``rest [G]``) take the short path."""
     G, K = idx.shape
     for g in prange(G):
+        if rest[g]:
+            _resting_backward(q, g, normalize, gxo, gqo, g_x, g_q)
+            continue
         gb = gbs[g]
         b = blend[g]
         n = np.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2] + b[3] * b[3])
@@ -196,15 +232,7 @@ def _backward(dqn, idx, w, x, q, normalize, blend, sgn, gxo, gqo, gbs, g_x, g_q)
             eb = cw_ * hx + cx_ * hw + cy_ * hz - cz_ * hy
             ec = cw_ * hy - cx_ * hz + cy_ * hw + cz_ * hx
             ed = cw_ * hz + cx_ * hy - cy_ * hx + cz_ * hw
-            if normalize:  # a = q / max(|q|, eps): g_q = (g_a - a (a . g_a)) / |q|
-                qw, qx, qy, qz = np.float64(q[g, 0]), np.float64(q[g, 1]), np.float64(q[g, 2]), np.float64(q[g, 3])
-                qn = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-                if qn > 1e-12:
-                    da = aw * ea + ax * eb + ay * ec + az * ed
-                    ea, eb, ec, ed = (ea - aw * da) / qn, (eb - ax * da) / qn, (ec - ay * da) / qn, (ed - az * da) / qn
-                else:
-                    ea, eb, ec, ed = ea / 1e-12, eb / 1e-12, ec / 1e-12, ed / 1e-12
-            g_q[g, 0], g_q[g, 1], g_q[g, 2], g_q[g, 3] = ea, eb, ec, ed
+            _canonical_quat_grad(q, g, normalize, ea, eb, ec, ed, g_q)
         else:
             g_q[g, 0], g_q[g, 1], g_q[g, 2], g_q[g, 3] = 0.0, 0.0, 0.0, 0.0
         # --- normalisation: qr = br/n, qd = bd/n
@@ -266,7 +294,7 @@ class _FusedDeform(torch.autograd.Function):
         g_x = np.empty((G, 3), np.float32)
         g_q = np.empty((G, 4), np.float32)
         with kernel_threads():
-            _backward(dqn, idx_np, w_np, x, q, normalize, blend, sgn, gxo, gqo, gbs, g_x, g_q)
+            _backward(dqn, idx_np, w_np, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x, g_q)
         _scatter_nodes(idx_np, w_np, sgn, gbs, rest, g_dqn)
         return (torch.from_numpy(g_dqn).to(torch.float32), None, None, torch.from_numpy(g_x),
                 torch.from_numpy(g_q), None, None)
