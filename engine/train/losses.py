@@ -89,9 +89,6 @@ def _blur_matrices(h: int, w: int, window: int, sigma: float, device, dtype):
 
 #: use engine/train/fused_ssim.py for CPU float32 images (tests switch it off to compare)
 FUSED_SSIM = True
-#: the L1 / coarse L1 / depth terms through engine/train/fused_image.py on the CPU (tests
-#: switch it off to compare with the torch versions)
-FUSED_IMAGE = True
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -152,24 +149,6 @@ def photometric(pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0
     return loss
 
 
-def image_l1_terms(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None,
-                   pools: tuple[int, ...] = ()) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(l1(pred, target, weight), coarse_l1(pred, target, weight, pools), mse)`` with
-    ``mse`` the mean squared error of ``clamp(pred, 0, 1)`` (for the PSNR metric, no
-    gradient); ``coarse`` is 0 when ``pools`` is empty. Images ``[H, W, C]``, ``weight
-    [H, W, 1]`` or None. CPU float32 images go through one fused pass (:mod:`.fused_image`),
-    everything else through :func:`l1` / :func:`coarse_l1` (the references)."""
-    if FUSED_IMAGE:
-        from .fused_image import fused_image_available, fused_l1_terms
-
-        if fused_image_available(pred, target, *([] if weight is None else [weight])):
-            return fused_l1_terms(pred, target, weight, tuple(pools))
-    coarse = coarse_l1(pred, target, weight, tuple(pools)) if pools else pred.new_zeros(())
-    with torch.no_grad():
-        mse = ((pred.detach().clamp(0, 1) - target) ** 2).mean()
-    return l1(pred, target, weight), coarse, mse
-
-
 def psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Peak signal-to-noise ratio in dB for images in [0, 1]; optional ``[H, W, 1]`` mask."""
     err = (pred - target) ** 2
@@ -227,22 +206,6 @@ def affine_from_sums(n: float, st: float, sp: float, stt: float, stp: float) -> 
     return (n * stp - st * sp) / det, (stt * sp - st * stp) / det
 
 
-def depth_term(depth_sum: torch.Tensor, alpha: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
-    """The training loss's depth term: :func:`depth_shift_scale_invariant` of the rendered
-    expected depth ``depth_sum / alpha`` (the rasteriser accumulates ``Σ w_i z_i``) against
-    ``prior``, over the pixels with ``prior > 0`` and ``alpha > 0.5``. All ``[H, W]``;
-    ``alpha`` is taken as a constant. CPU float32 goes through the fused kernel
-    (:mod:`.fused_image`), everything else through the torch ops below (the reference)."""
-    alpha = alpha.detach()
-    if FUSED_IMAGE:
-        from .fused_image import fused_depth_term, fused_image_available
-
-        if fused_image_available(depth_sum, alpha, prior):
-            return fused_depth_term(depth_sum, alpha, prior)
-    valid = (prior > 0) & (alpha > 0.5)
-    return depth_shift_scale_invariant(depth_sum / alpha.clamp_min(1e-6), prior, valid)
-
-
 def mask_loss(alpha: torch.Tensor, dyn_alpha: torch.Tensor, fg_prior: torch.Tensor) -> torch.Tensor:
     """Mask term: the alpha rendered from dynamic Gaussians should match the fg prior.
 
@@ -269,24 +232,6 @@ def track_loss(proj_uv: torch.Tensor, target_uv: torch.Tensor, visible: torch.Te
         return proj_uv.sum() * 0.0
     d = (proj_uv[visible] - target_uv[visible]) / scale
     return F.huber_loss(d, torch.zeros_like(d), delta=0.05, reduction="mean")
-
-
-def track_term(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, target_uv: torch.Tensor,
-               scale: float) -> torch.Tensor:
-    """:func:`track_loss` of world points ``points [P, 3]`` projected by the camera ``K [3, 3]``,
-    ``w2c [4, 4]`` against their tracks' pixels ``target_uv [P, 2]``, every point visible. CPU
-    float32 goes through one fused pass (:mod:`.fused_points`), everything else through
-    :func:`~engine.geometry.camera.project` and :func:`track_loss` (the reference)."""
-    if FUSED_IMAGE:
-        from .fused_image import fused_image_available
-        from .fused_points import fused_track
-
-        if fused_image_available(points, K, w2c, target_uv):
-            return fused_track(points, K, w2c, target_uv, scale)
-    from ..geometry.camera import project
-
-    uv, _ = project(K, w2c, points)
-    return track_loss(uv, target_uv, torch.ones(points.shape[0], dtype=torch.bool, device=points.device), scale)
 
 
 def mask_distance(fg: torch.Tensor, threshold: float) -> torch.Tensor:
@@ -334,25 +279,6 @@ def on_mask_loss(uv: torch.Tensor, dist: torch.Tensor, scale: float) -> torch.Te
     d = F.grid_sample(dist.view(1, 1, h, w).to(uv.dtype), grid, align_corners=True,
                       padding_mode="border").view(-1) / scale
     return F.huber_loss(d, torch.zeros_like(d), delta=0.05, reduction="sum") / uv.shape[0]
-
-
-def on_mask_term(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, dist: torch.Tensor,
-                 scale: float) -> torch.Tensor:
-    """:func:`on_mask_loss` of world points ``points [P, 3]`` projected by the camera ``K [3, 3]``,
-    ``w2c [4, 4]``; points behind the camera are not scored (they count 0). CPU float32 goes
-    through one fused pass (:mod:`.fused_points`), everything else through
-    :func:`~engine.geometry.camera.project` and :func:`on_mask_loss` (the reference)."""
-    if FUSED_IMAGE:
-        from .fused_image import fused_image_available
-        from .fused_points import fused_on_mask
-
-        if fused_image_available(points, K, w2c, dist):
-            return fused_on_mask(points, K, w2c, dist, scale)
-    from ..geometry.camera import project
-
-    uv, z = project(K, w2c, points)
-    uv = torch.where((z > 0).unsqueeze(-1), uv, uv.new_tensor(-1.0))  # behind the camera: not scored
-    return on_mask_loss(uv, dist, scale)
 
 
 def arap_loss(pos_t0: torch.Tensor, pos_t1: torch.Tensor, rot_t1: torch.Tensor, graph_idx: torch.Tensor,

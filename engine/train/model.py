@@ -32,7 +32,7 @@ from .fused import fused_available, fused_deform
 from .fused_nodes import fused_node_state
 from .lifespan import lifespan_window
 from .motion_mlp import DeformMLP, positional_encoding  # noqa: F401 (re-exported)
-from .split import bind_within_class, knn_rbf
+from .split import bind_within_class, knn_rbf, resting_nodes
 
 # Use the fused CPU deformation (engine/train/fused.py) where it applies; the torch
 # path (gaussian_transforms + dq_apply_*) is the reference and the GPU path.
@@ -40,9 +40,6 @@ FUSED_DEFORM = True
 #: node splines and transforms through engine/train/fused_nodes.py on the CPU (tests switch
 #: it off to compare with the torch ops)
 FUSED_NODES = True
-#: a node transform within this of the identity (dual part: times the scene extent) is the
-#: identity to float32 rounding: static nodes' rest keys reproduce their centres to ~2e-7
-REST_TOL = 1e-6
 
 SH_C0 = 0.28209479177387814
 
@@ -321,23 +318,6 @@ class DynamicScene(nn.Module):
         """Node transforms at time ``t`` as unit dual quaternions [N, 8]."""
         return self.node_state_dq(t)[2]
 
-    @torch.no_grad()
-    def resting_nodes(self, dq_nodes: torch.Tensor) -> torch.Tensor | None:
-        """``[N] bool``: the static nodes whose transform ``dq_nodes [N, 8]`` is the identity
-        to float rounding (``REST_TOL``, the dual part relative to the scene extent), or None
-        when no node can be (no split, or MLP motion, whose static nodes are not frozen).
-
-        Why: with the split, static nodes keep their rest keys (their key gradients are
-        zeroed, ``split.freeze_static_nodes``), so the Gaussians bound to them are undeformed
-        by design; blending them anyway was three quarters of the deformation's work on a
-        typical scene. The transform is still checked, so a static node moved on purpose
-        (keys edited in Blender and fine-tuned) deforms its Gaussians as before."""
-        if self.mlp is not None or self.pos_keys is None or self.node_dyn.all():
-            return None
-        dev = (dq_nodes - dq_nodes.new_tensor([1.0, 0, 0, 0, 0, 0, 0, 0])).abs()
-        near = (dev[:, :4].amax(1) <= REST_TOL) & (dev[:, 4:].amax(1) <= REST_TOL * max(1.0, float(self.extent)))
-        return ~self.node_dyn & near
-
     def deform(self, t: float, dq_nodes: torch.Tensor | None = None,
                index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Gaussian centres [G, 3] and rotations [G, 4] at time ``t``.
@@ -357,7 +337,7 @@ class DynamicScene(nn.Module):
             # the static Gaussians passed through unblended
             dq_nodes = self.node_dq(t) if dq_nodes is None else dq_nodes
             return fused_deform(dq_nodes, bind_idx, bind_w, means, quats, normalize=True,
-                                node_rest=self.resting_nodes(dq_nodes))
+                                node_rest=resting_nodes(self, dq_nodes))
         dq_nodes = self.node_dq(t) if dq_nodes is None else dq_nodes
         dq = dq_blend(dq_nodes, bind_idx, bind_w)
         return dq_apply_points(dq, means), dq_apply_rotations(dq, quat_normalize(quats))

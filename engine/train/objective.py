@@ -23,6 +23,7 @@ from .data import TrainingData
 from .fused_reg import fused_arap, fused_key_terms, fused_reg_available
 from .init_model import canonicalise
 from .model import DynamicScene
+from .terms import depth_term, image_l1_terms, on_mask_term, track_term
 
 #: ARAP / static-motion / smoothness through engine/train/fused_reg.py on the CPU (tests
 #: switch it off to compare with the torch versions)
@@ -157,7 +158,7 @@ class Objective:
             # share of the photometric gradient that is not drowned by the background
             weight = (1.0 + w.rgb_dynamic * (d.fg[f] >= self.cfg.dynamic_threshold).to(target.dtype)).unsqueeze(-1)
         # L1, the coarse L1 and the PSNR's squared error in one pass (L.photometric's L1 part)
-        l1, coarse, mse = L.image_l1_terms(out.rgb, target, weight, L.COARSE_POOLS if w.rgb_coarse > 0 else ())
+        l1, coarse, mse = image_l1_terms(out.rgb, target, weight, L.COARSE_POOLS if w.rgb_coarse > 0 else ())
         rgb = (1.0 - w.ssim) * l1
         if w.ssim > 0:
             rgb = rgb + w.ssim * (1.0 - L.ssim(out.rgb, target))
@@ -165,7 +166,7 @@ class Objective:
         if w.rgb_coarse > 0:
             terms["rgb_coarse"] = w.rgb_coarse * coarse
         if w.depth > 0 and d.depth is not None:
-            terms["depth"] = w.depth * L.depth_term(out.depth[..., 0], out.alpha[..., 0], d.depth[f])
+            terms["depth"] = w.depth * depth_term(out.depth[..., 0], out.alpha[..., 0], d.depth[f])
         if out.extra is not None:  # a mask step (see the trainer's _loss)
             terms["mask"] = w.mask * L.mask_loss(out.alpha, out.extra, d.fg[f])
         if self.track_canon is not None and w.track > 0 and step >= self.cfg.warmup_static_steps:
@@ -179,7 +180,7 @@ class Objective:
                 target_uv = d.tracks_xy[self.track_ids[sel], f]
                 # in % of the image width (Huber, linear beyond 0.05 %): at the width of the
                 # image the term vanished next to the photometric one (a 10 px error cost 1e-4)
-                terms["track"] = w.track * L.track_term(x, d.K[f], d.w2c[f], target_uv, float(d.width) / 100.0)
+                terms["track"] = w.track * track_term(x, d.K[f], d.w2c[f], target_uv, float(d.width) / 100.0)
         if w.on_mask > 0 and step >= self.cfg.warmup_static_steps:
             on_mask = self.on_mask(m, f, t, means_t, dq_nodes, shown)
             if on_mask is not None:
@@ -252,7 +253,7 @@ class Objective:
             dyn = dyn[torch.randperm(len(dyn), generator=self.gen)[:4096].to(dyn.device)]
         centres = torch.index_select(means_t, 0, dyn) if shown is None else m.deform(t, dq_nodes=dq_nodes,
                                                                                     index=dyn)[0]
-        return L.on_mask_term(centres, d.K[f], d.w2c[f], self.mask_dist[f], float(d.width) / 100.0)
+        return on_mask_term(centres, d.K[f], d.w2c[f], self.mask_dist[f], float(d.width) / 100.0)
 
     # ---------------------------------------------------------------- static motion
     def static_motion(self, model: DynamicScene, pos_t: torch.Tensor, rot_t: torch.Tensor,

@@ -113,6 +113,30 @@ def graph_within_class(centers: torch.Tensor, node_dyn: torch.Tensor, k: int) ->
     return out
 
 
+#: a node transform within this of the identity (dual part: times the scene extent) is the
+#: identity to float32 rounding: static nodes' rest keys reproduce their centres to ~2e-7
+REST_TOL = 1e-6
+
+
+@torch.no_grad()
+def resting_nodes(model, dq_nodes: torch.Tensor) -> torch.Tensor | None:
+    """``[N] bool``: the static nodes of ``model`` (a :class:`~engine.train.model.DynamicScene`)
+    whose transform ``dq_nodes [N, 8]`` is the identity to float rounding (``REST_TOL``, the
+    dual part relative to the scene extent), or None when no node can be (no split, or MLP
+    motion, whose static nodes are not frozen).
+
+    Why: static nodes keep their rest keys (:func:`freeze_static_nodes`), so the Gaussians
+    bound to them are undeformed by design; blending them anyway was three quarters of the
+    deformation's work on a typical scene (the fused deformation passes them through,
+    ``engine/train/fused.py``). The transform is still checked, so a static node moved on
+    purpose (keys edited in Blender and fine-tuned) deforms its Gaussians as before."""
+    if model.mlp is not None or model.pos_keys is None or bool(model.node_dyn.all()):
+        return None
+    dev = (dq_nodes - dq_nodes.new_tensor([1.0, 0, 0, 0, 0, 0, 0, 0])).abs()
+    near = (dev[:, :4].amax(1) <= REST_TOL) & (dev[:, 4:].amax(1) <= REST_TOL * max(1.0, float(model.extent)))
+    return ~model.node_dyn & near
+
+
 def freeze_static_nodes(pos_keys: torch.Tensor | None, rot_keys: torch.Tensor | None, node_dyn: torch.Tensor) -> None:
     """Zero the gradients of static nodes' keys (call between backward and the optimiser
     step): with zero gradients from the first step Adam's moments stay zero, so the keys

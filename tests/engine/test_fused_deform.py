@@ -4,6 +4,7 @@ values and gradients (means, quats, spline keys), antipodal node quaternions inc
 import torch
 
 import engine.train.model as M
+from engine.train.split import resting_nodes
 
 
 def _scene(seed=0, g=2000, n=48, k=6):
@@ -100,7 +101,7 @@ def test_static_gaussians_at_rest_pass_through_and_the_rest_match_the_reference(
     rest = ~m.node_dyn[m.bind_idx].any(1)
     assert 100 < int(rest.sum()) < m.num_gaussians - 100
     dq = m.node_dq(0.37)
-    assert bool(m.resting_nodes(dq)[static].all()) and not bool(m.resting_nodes(dq)[~static].any())
+    assert bool(resting_nodes(m, dq)[static].all()) and not bool(resting_nodes(m, dq)[~static].any())
     ref, fus = _run(m, False), _run(m, True)
     assert torch.equal(fus[0][rest], m.means.detach()[rest])
     q = m.quats.detach()[rest]
@@ -124,6 +125,6 @@ def test_a_static_node_moved_on_purpose_still_deforms_its_gaussians():
         m.pos_keys[static] = m.node_centers[static][:, None] + torch.tensor([0.0, 0.2, 0.0])
         m.rot_keys[static] = torch.tensor([1.0, 0.0, 0.0, 0.0])
     m.rebind()
-    assert not bool(m.resting_nodes(m.node_dq(0.5)).any())
+    assert not bool(resting_nodes(m, m.node_dq(0.5)).any())
     ref, fus = _run(m, False, t=0.5), _run(m, True, t=0.5)
     assert torch.allclose(ref[0], fus[0], atol=1e-5)

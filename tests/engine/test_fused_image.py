@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from engine.train import losses as L
+from engine.train import terms as TM
 from engine.train.fused_image import fused_depth_term, fused_l1_terms
 
 
@@ -57,9 +58,9 @@ def test_image_l1_terms_dispatch_is_the_same_either_way(monkeypatch):
     pred, target, weight = _images(24, 32, seed=3)
     out = {}
     for fused in (True, False):
-        monkeypatch.setattr(L, "FUSED_IMAGE", fused)
+        monkeypatch.setattr(TM, "FUSED_TERMS", fused)
         p = pred.clone().requires_grad_(True)
-        l1, coarse, mse = L.image_l1_terms(p, target, weight, L.COARSE_POOLS)
+        l1, coarse, mse = TM.image_l1_terms(p, target, weight, L.COARSE_POOLS)
         (l1 + coarse).backward()
         out[fused] = (float(l1.detach()), float(coarse.detach()), float(mse), p.grad)
     for a, b in zip(out[True][:3], out[False][:3]):
@@ -115,7 +116,7 @@ def test_trainer_terms_are_the_same_fused_or_not(tmp_path, monkeypatch):
                         checkpoint_every=0, warmup_static_steps=0)
     res = {}
     for fused in (True, False):
-        monkeypatch.setattr(L, "FUSED_IMAGE", fused)
+        monkeypatch.setattr(TM, "FUSED_TERMS", fused)
         tr = T.Trainer(data, make_nodes(truth), cfg, tmp_path / str(fused))
         tr.step = 5
         loss, metrics, _, _ = tr._loss(int(data.train_idx[1]))

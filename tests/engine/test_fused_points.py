@@ -7,6 +7,7 @@ import torch
 
 from engine.geometry.camera import project
 from engine.train import losses as L
+from engine.train import terms as TM
 from engine.train.fused_points import fused_on_mask
 
 
@@ -55,9 +56,9 @@ def test_on_mask_term_dispatch_is_the_same_either_way(monkeypatch):
     pts, K, w2c, dist = _setup(2)
     out = {}
     for fused in (True, False):
-        monkeypatch.setattr(L, "FUSED_IMAGE", fused)
+        monkeypatch.setattr(TM, "FUSED_TERMS", fused)
         x = pts.clone().requires_grad_(True)
-        v = L.on_mask_term(x, K, w2c, dist, 0.4)
+        v = TM.on_mask_term(x, K, w2c, dist, 0.4)
         v.backward()
         out[fused] = (float(v.detach()), x.grad)
     assert out[True][0] == pytest.approx(out[False][0], rel=1e-5)
