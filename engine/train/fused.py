@@ -275,7 +275,7 @@ class _FusedDeform(torch.autograd.Function):
                    else node_rest.detach().to(torch.uint8).contiguous().numpy())
         out_x = np.empty((G, 3), np.float32)
         out_q = np.empty((G, 4), np.float32)
-        blend = np.zeros((G, 8))
+        blend = np.empty((G, 8))  # every row is written by _forward
         sgn = np.empty((G, K))
         rest = np.empty(G, np.uint8)
         with kernel_threads():
