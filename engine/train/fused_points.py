@@ -139,41 +139,29 @@ def _camera(K, w2c):
     return kin, w2c.detach().double().cpu().contiguous().numpy()
 
 
-class _FusedTrack(torch.autograd.Function):
+class _FusedPointTerm(torch.autograd.Function):
+    """One point term's value (``kernel``: :func:`_track` or :func:`_on_mask`, against
+    ``other``: the target pixels or the distance map); its gradient comes with the value."""
+
     @staticmethod
-    def forward(ctx, points, K, w2c, target_uv, scale):
+    def forward(ctx, points, K, w2c, other, scale, kernel):
         kin, view = _camera(K, w2c)
         grad = np.empty((points.shape[0], 3))
-        val = _track(_f32(points), kin, view, _f32(target_uv), float(scale), HUBER_DELTA, grad) if len(points) else 0.0
+        val = kernel(_f32(points), kin, view, _f32(other), float(scale), HUBER_DELTA, grad) if len(points) else 0.0
         ctx.grad = grad
         ctx.dtype = points.dtype
         return points.new_tensor(val)
 
     @staticmethod
     def backward(ctx, g):
-        return torch.from_numpy(ctx.grad * float(g)).to(ctx.dtype), None, None, None, None
+        return torch.from_numpy(ctx.grad * float(g)).to(ctx.dtype), None, None, None, None, None
 
 
 def fused_track(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, target_uv: torch.Tensor,
                 scale: float) -> torch.Tensor:
     """The track term of world points ``points [P, 3]`` (differentiable) against their tracks'
     pixels ``target_uv [P, 2]`` in the camera ``K``, ``w2c`` (module docstring)."""
-    return _FusedTrack.apply(points, K, w2c, target_uv, scale)
-
-
-class _FusedOnMask(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, points, K, w2c, dist, scale):
-        kin, view = _camera(K, w2c)
-        grad = np.empty((points.shape[0], 3))
-        val = _on_mask(_f32(points), kin, view, _f32(dist), float(scale), HUBER_DELTA, grad) if len(points) else 0.0
-        ctx.grad = grad
-        ctx.dtype = points.dtype
-        return points.new_tensor(val)
-
-    @staticmethod
-    def backward(ctx, g):
-        return torch.from_numpy(ctx.grad * float(g)).to(ctx.dtype), None, None, None, None
+    return _FusedPointTerm.apply(points, K, w2c, target_uv, scale, _track)
 
 
 def fused_on_mask(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, dist: torch.Tensor,
@@ -181,4 +169,4 @@ def fused_on_mask(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, dist
     """The on-mask term of world points ``points [P, 3]`` (differentiable) seen by the camera
     ``K [3, 3]``, ``w2c [4, 4]`` against the distance map ``dist [H, W]`` (module docstring);
     ``scale``: pixels per unit error."""
-    return _FusedOnMask.apply(points, K, w2c, dist, scale)
+    return _FusedPointTerm.apply(points, K, w2c, dist, scale, _on_mask)
