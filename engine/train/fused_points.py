@@ -134,6 +134,8 @@ def _on_mask(x, kin, w2c, dist, scale, delta, grad):
 
 
 def _camera(K, w2c):
+    """The kernels' camera: ``kin [5] = fx, skew, cx, fy, cy`` of ``K [3, 3]`` and ``w2c [4, 4]``,
+    float64 NumPy."""
     k = K.detach().double().cpu()
     kin = np.array([float(k[0, 0]), float(k[0, 1]), float(k[0, 2]), float(k[1, 1]), float(k[1, 2])])
     return kin, w2c.detach().double().cpu().contiguous().numpy()
