@@ -94,3 +94,21 @@ def make_nodes(truth, key_count: int = 5, moving: bool = True) -> B.NodeArrays:
     return B.NodeArrays(centers=centers.numpy(), radii=radii.numpy(), key_times=kt.numpy(), pos_keys=pos.numpy(),
                         pos_tangents=catmull_rom_tangents(kt, pos).numpy(), rot_keys=rot.numpy(),
                         rot_tangents=np.zeros_like(rot.numpy()), p_dyn=p_dyn.numpy(), graph_idx=graph.numpy())
+
+
+def one_step(out_dir, data, truth, cfg, jitter_keys: float = 0.0):
+    """A Trainer on ``data`` / ``make_nodes(truth)`` writing under ``out_dir``, its loss at
+    step 5 on the second training frame, backward done; returns ``(trainer, metrics)``.
+    ``jitter_keys``: add this much seeded noise to the node position keys first (so the
+    motion terms are live). For tests that compare one step with a switch on and off."""
+    from engine.train import trainer as T
+
+    tr = T.Trainer(data, make_nodes(truth), cfg, out_dir)
+    if jitter_keys:
+        with torch.no_grad():
+            tr.model.pos_keys.add_(jitter_keys * torch.randn(tr.model.pos_keys.shape,
+                                                             generator=torch.Generator().manual_seed(0)))
+    tr.step = 5
+    loss, metrics, _, _ = tr._loss(int(data.train_idx[1]))
+    loss.backward()
+    return tr, metrics

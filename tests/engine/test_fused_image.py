@@ -105,10 +105,9 @@ def test_fused_depth_term_without_enough_valid_pixels_is_zero():
 def test_trainer_terms_are_the_same_fused_or_not(tmp_path, monkeypatch):
     """One training step's photometric, coarse, depth, on-mask and track terms, PSNR and
     Gaussian gradients with the fused image and point terms and with the torch ones."""
-    from engine.train import trainer as T
     from engine.train.config import preset_config
 
-    from .synthetic_training import make_nodes, make_scene
+    from .synthetic_training import make_scene, one_step
 
     data, truth = make_scene(frames=8, width=48, height=36)
     assert data.depth is not None
@@ -117,10 +116,7 @@ def test_trainer_terms_are_the_same_fused_or_not(tmp_path, monkeypatch):
     res = {}
     for fused in (True, False):
         monkeypatch.setattr(TM, "FUSED_TERMS", fused)
-        tr = T.Trainer(data, make_nodes(truth), cfg, tmp_path / str(fused))
-        tr.step = 5
-        loss, metrics, _, _ = tr._loss(int(data.train_idx[1]))
-        loss.backward()
+        tr, metrics = one_step(tmp_path / str(fused), data, truth, cfg)
         res[fused] = (metrics, tr.model.means.grad.clone(), tr.model.opacity_logits.grad.clone())
     (m1, gm1, go1), (m0, gm0, go0) = res[True], res[False]
     for name in ("rgb", "rgb_coarse", "depth", "psnr", "on_mask", "track"):

@@ -61,10 +61,9 @@ def test_fused_node_state_matches_torch(t):
 def test_trainer_step_is_the_same_fused_or_not(tmp_path, monkeypatch):
     """One training step's loss terms and key gradients with the fused node state and with
     the torch ops."""
-    from engine.train import trainer as T
     from engine.train.config import preset_config
 
-    from .synthetic_training import make_nodes, make_scene
+    from .synthetic_training import make_scene, one_step
 
     data, truth = make_scene(frames=8, width=48, height=36)
     cfg = preset_config("preview", steps=10, gaussians_per_frame=300, init_keyframes=2, num_nodes=25,
@@ -72,13 +71,7 @@ def test_trainer_step_is_the_same_fused_or_not(tmp_path, monkeypatch):
     res = {}
     for fused in (True, False):
         monkeypatch.setattr(M, "FUSED_NODES", fused)
-        tr = T.Trainer(data, make_nodes(truth), cfg, tmp_path / str(fused))
-        with torch.no_grad():
-            tr.model.pos_keys.add_(0.02 * torch.randn(tr.model.pos_keys.shape,
-                                                      generator=torch.Generator().manual_seed(0)))
-        tr.step = 5
-        loss, metrics, _, _ = tr._loss(int(data.train_idx[1]))
-        loss.backward()
+        tr, metrics = one_step(tmp_path / str(fused), data, truth, cfg, jitter_keys=0.02)
         res[fused] = (metrics, tr.model.pos_keys.grad.clone(), tr.model.rot_keys.grad.clone())
     (m1, gp1, gq1), (m0, gp0, gq0) = res[True], res[False]
     for name in ("rgb", "arap", "track"):
