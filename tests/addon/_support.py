@@ -38,6 +38,18 @@ def fake_engine(tmp_path: Path, name: str, body: str) -> list[str]:
     return [sys.executable, "-u", str(path)]
 
 
+def failing_python(tmp_path: Path, delay_s: float = 3.0) -> Path:
+    """An executable 'interpreter' in ``tmp_path`` that exits with status 3 after ``delay_s``,
+    for an engine job that must fail. Not at once: the Reconstruct operator reports a job that
+    has already failed by the time it returns as an error (CANCELLED), and under load (two test
+    workers) an instant exit could win that race."""
+    fake = tmp_path / "fake_python"
+    fake.write_text(f"#!{sys.executable}\nimport sys, time\ntime.sleep({float(delay_s)!r})\nsys.exit(3)\n",
+                    encoding="utf-8")
+    fake.chmod(0o755)
+    return fake
+
+
 def look_at_w2c(eye, target=(0.0, 0.0, 0.0)):
     """OpenCV world-to-camera ``[4, 4]`` (float64) of a camera at ``eye`` looking at ``target``, z up."""
     import numpy as np

@@ -6,28 +6,12 @@ writes is what is checked), so these tests take seconds."""
 from __future__ import annotations
 
 import json
-import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.addon._support import bpy, clean_jobs, look_at_w2c, registered, user_dir  # noqa: F401
-
-
-def _fake_python(tmp_path) -> Path:
-    """An 'interpreter' that fails after 3 s: the add-on's exports are already on disk by then.
-    Not at once: the operator reports a job that has already failed by the time it returns as an
-    error (CANCELLED), and under load (two test workers) an instant exit could win that race."""
-    fake = tmp_path / "fake_python"
-    fake.write_text(f"#!{sys.executable}\n" + textwrap.dedent("""
-        import sys, time
-        time.sleep(3)
-        sys.exit(3)
-        """), encoding="utf-8")
-    fake.chmod(0o755)
-    return fake
+from tests.addon._support import bpy, clean_jobs, failing_python, look_at_w2c, registered, user_dir  # noqa: F401
 
 
 def _sequence(folder: Path, n: int = 4) -> Path:
@@ -43,7 +27,7 @@ def _sequence(folder: Path, n: int = 4) -> Path:
 
 
 def _setup(prefs, tmp_path):
-    prefs.engine_python = str(_fake_python(tmp_path))
+    prefs.engine_python = str(failing_python(tmp_path))
     prefs.results_dir = str(tmp_path / "results")
     prefs.cache_dir = str(tmp_path / "cache")
     return bpy.context.scene.motion_splats_result

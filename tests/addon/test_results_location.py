@@ -12,17 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.addon._support import REPO, bpy, clean_jobs, registered, user_dir  # noqa: F401
-
-
-def _fake_python(tmp_path) -> Path:
-    """An 'interpreter' that fails after 3 s. Not at once: the operator reports a job that has
-    already failed by the time it returns as an error (CANCELLED), and under load (two test
-    workers) an instant exit sometimes won that race."""
-    fake = tmp_path / "fake_python"
-    fake.write_text(f"#!{sys.executable}\nimport sys, time\ntime.sleep(3)\nsys.exit(3)\n", encoding="utf-8")
-    fake.chmod(0o755)
-    return fake
+from tests.addon._support import REPO, bpy, clean_jobs, failing_python, registered, user_dir  # noqa: F401
 
 
 def _dataset(tmp_path) -> Path:
@@ -33,7 +23,7 @@ def _dataset(tmp_path) -> Path:
 
 
 def test_results_beside_the_blend_named_after_the_clip(extension, registered, tmp_path, user_dir, clean_jobs):
-    registered.engine_python = str(_fake_python(tmp_path))
+    registered.engine_python = str(failing_python(tmp_path))
     s = bpy.context.scene.motion_splats_result
     s.clip_path = str(_dataset(tmp_path))
     blend = tmp_path / "shots" / "shot.blend"
@@ -57,7 +47,7 @@ def test_results_beside_the_blend_named_after_the_clip(extension, registered, tm
 
 
 def test_unsaved_file_uses_the_results_folder(extension, registered, tmp_path, user_dir, clean_jobs):
-    registered.engine_python = str(_fake_python(tmp_path))
+    registered.engine_python = str(failing_python(tmp_path))
     registered.results_dir = str(tmp_path / "my results")
     bpy.context.scene.motion_splats_result.clip_path = str(_dataset(tmp_path))
     assert not bpy.data.filepath
