@@ -63,13 +63,11 @@ def _forward(dqn, idx, w, x, q, normalize, node_rest, out_x, out_q, blend, sgn, 
     G, K = idx.shape
     for g in prange(G):
         b = blend[g]
-        if _resting(node_rest, idx, g):
+        if _resting(node_rest, idx, g):  # (its sgn row is never read: backward and scatter skip it)
             rest[g] = 1
             b[0] = 1.0
             for c in range(1, 8):
                 b[c] = 0.0
-            for k in range(K):
-                sgn[g, k] = 1.0
             _apply(b, x, q, g, normalize, out_x, out_q)
             continue
         rest[g] = 0
