@@ -139,11 +139,12 @@ def ssim_torch(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma
 
 
 def photometric(pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2,
-                weight: torch.Tensor | None = None) -> torch.Tensor:
+                weight: torch.Tensor | None = None, l1_value: torch.Tensor | None = None) -> torch.Tensor:
     """3DGS photometric loss ``(1 - λ) L1 + λ (1 - SSIM)``; images ``[H, W, 3]``.
 
-    ``weight [H, W, 1]`` (optional) makes the L1 term a weighted mean over pixels."""
-    loss = (1.0 - ssim_weight) * l1(pred, target, weight)
+    ``weight [H, W, 1]`` (optional) makes the L1 term a weighted mean over pixels;
+    ``l1_value``: that L1 when the caller already has it (the training step's fused pass)."""
+    loss = (1.0 - ssim_weight) * (l1(pred, target, weight) if l1_value is None else l1_value)
     if ssim_weight > 0:
         loss = loss + ssim_weight * (1.0 - ssim(pred, target))
     return loss
@@ -157,6 +158,11 @@ def psnr(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None = N
     else:
         w = mask.expand_as(err)
         mse = (err * w).sum() / w.sum().clamp_min(1e-8)
+    return psnr_from_mse(mse)
+
+
+def psnr_from_mse(mse: torch.Tensor) -> torch.Tensor:
+    """PSNR in dB of images in [0, 1] from their mean squared error (floored at 1e-12)."""
     return -10.0 * torch.log10(mse.clamp_min(1e-12))
 
 

@@ -11,8 +11,6 @@ regions' distance maps ``mask_dist``.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from ..geometry.camera import unproject
@@ -159,10 +157,7 @@ class Objective:
             weight = (1.0 + w.rgb_dynamic * (d.fg[f] >= self.cfg.dynamic_threshold).to(target.dtype)).unsqueeze(-1)
         # L1, the coarse L1 and the PSNR's squared error in one pass (L.photometric's L1 part)
         l1, coarse, mse = image_l1_terms(out.rgb, target, weight, L.COARSE_POOLS if w.rgb_coarse > 0 else ())
-        rgb = (1.0 - w.ssim) * l1
-        if w.ssim > 0:
-            rgb = rgb + w.ssim * (1.0 - L.ssim(out.rgb, target))
-        terms = {"rgb": rgb * w.rgb}
+        terms = {"rgb": L.photometric(out.rgb, target, w.ssim, weight, l1_value=l1) * w.rgb}
         if w.rgb_coarse > 0:
             terms["rgb_coarse"] = w.rgb_coarse * coarse
         if w.depth > 0 and d.depth is not None:
@@ -215,7 +210,7 @@ class Objective:
         loss = sum(terms.values())
         with torch.no_grad():
             metrics = {k: float(v) for k, v in terms.items()}
-            metrics["psnr"] = -10.0 * math.log10(max(float(mse), 1e-12))  # L.psnr of the clamped render
+            metrics["psnr"] = float(L.psnr_from_mse(mse))  # L.psnr of the clamped render
         return loss, metrics, out
 
     # ---------------------------------------------------------------- dynamic Gaussians on the mask
