@@ -32,6 +32,7 @@ from numba import njit, prange
 
 from ..raster.cpu import kernel_threads  # Numba at torch's thread count
 from .fused import _f32  # float32 C-contiguous NumPy view (no copy for float32 tensors)
+from .losses import affine_from_sums
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
 _F0 = np.float32(0.0)
@@ -229,8 +230,6 @@ def _depth_residual(depth, alpha, prior, scale, shift, wgt, grad, rows):
 class _FusedDepthTerm(torch.autograd.Function):
     @staticmethod
     def forward(ctx, depth_sum, alpha, prior):
-        from .losses import affine_from_sums
-
         ds, al, pr = _f32(depth_sum), _f32(alpha), _f32(prior)
         H, W = ds.shape
         depth = np.empty((H, W), np.float32)

@@ -28,9 +28,8 @@ def image_l1_terms(pred: torch.Tensor, target: torch.Tensor, weight: torch.Tenso
     gradient); ``coarse`` is 0 when ``pools`` is empty. Images ``[H, W, C]``, ``weight
     [H, W, 1]`` or None. CPU float32 images go through one fused pass (:mod:`.fused_image`),
     everything else through :func:`~.losses.l1` / :func:`~.losses.coarse_l1` (the references)."""
-    if FUSED_TERMS:
-        if fused_image_available(pred, target, *([] if weight is None else [weight])):
-            return fused_l1_terms(pred, target, weight, tuple(pools))
+    if FUSED_TERMS and fused_image_available(pred, target, *([] if weight is None else [weight])):
+        return fused_l1_terms(pred, target, weight, tuple(pools))
     coarse = L.coarse_l1(pred, target, weight, tuple(pools)) if pools else pred.new_zeros(())
     with torch.no_grad():
         mse = ((pred.detach().clamp(0, 1) - target) ** 2).mean()
@@ -44,9 +43,8 @@ def depth_term(depth_sum: torch.Tensor, alpha: torch.Tensor, prior: torch.Tensor
     ``alpha`` is taken as a constant. CPU float32 goes through the fused kernel
     (:mod:`.fused_image`), everything else through the torch ops below (the reference)."""
     alpha = alpha.detach()
-    if FUSED_TERMS:
-        if fused_image_available(depth_sum, alpha, prior):
-            return fused_depth_term(depth_sum, alpha, prior)
+    if FUSED_TERMS and fused_image_available(depth_sum, alpha, prior):
+        return fused_depth_term(depth_sum, alpha, prior)
     valid = (prior > 0) & (alpha > 0.5)
     return L.depth_shift_scale_invariant(depth_sum / alpha.clamp_min(1e-6), prior, valid)
 
@@ -57,9 +55,8 @@ def track_term(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, target_
     ``w2c [4, 4]`` against their tracks' pixels ``target_uv [P, 2]``, every point visible. CPU
     float32 goes through one fused pass (:mod:`.fused_points`), everything else through
     :func:`~engine.geometry.camera.project` and :func:`~.losses.track_loss` (the reference)."""
-    if FUSED_TERMS:
-        if fused_image_available(points, K, w2c, target_uv):
-            return fused_track(points, K, w2c, target_uv, scale)
+    if FUSED_TERMS and fused_image_available(points, K, w2c, target_uv):
+        return fused_track(points, K, w2c, target_uv, scale)
     uv, _ = project(K, w2c, points)
     return L.track_loss(uv, target_uv, torch.ones(points.shape[0], dtype=torch.bool, device=points.device), scale)
 
@@ -70,9 +67,8 @@ def on_mask_term(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor, dist:
     ``w2c [4, 4]``; points behind the camera are not scored (they count 0). CPU float32 goes
     through one fused pass (:mod:`.fused_points`), everything else through
     :func:`~engine.geometry.camera.project` and :func:`~.losses.on_mask_loss` (the reference)."""
-    if FUSED_TERMS:
-        if fused_image_available(points, K, w2c, dist):
-            return fused_on_mask(points, K, w2c, dist, scale)
+    if FUSED_TERMS and fused_image_available(points, K, w2c, dist):
+        return fused_on_mask(points, K, w2c, dist, scale)
     uv, z = project(K, w2c, points)
     uv = torch.where((z > 0).unsqueeze(-1), uv, uv.new_tensor(-1.0))  # behind the camera: not scored
     return L.on_mask_loss(uv, dist, scale)
