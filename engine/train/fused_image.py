@@ -31,7 +31,7 @@ import torch
 from numba import njit, prange
 
 from ..raster.cpu import kernel_threads  # Numba at torch's thread count
-from .fused import _f32  # float32 C-contiguous NumPy view (no copy for float32 tensors)
+from .fused import _f32, fused_available  # _f32: float32 C-contiguous NumPy view (no copy)
 from .losses import affine_from_sums
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
@@ -265,7 +265,7 @@ def fused_depth_term(depth_sum: torch.Tensor, alpha: torch.Tensor, prior: torch.
     return _FusedDepthTerm.apply(depth_sum, alpha.detach(), prior)
 
 
-def fused_image_available(*images: torch.Tensor) -> bool:
-    """CPU float32 tensors, none of them but the first wanting a gradient."""
-    return (all(t.device.type == "cpu" and t.dtype == torch.float32 for t in images)
-            and not any(t.requires_grad for t in images[1:]))
+def fused_image_available(*tensors: torch.Tensor) -> bool:
+    """What every fused pass handles (:func:`~engine.train.fused.fused_available`: CPU float32),
+    with no tensor but the first wanting a gradient (these passes differentiate only it)."""
+    return fused_available(*tensors) and not any(t.requires_grad for t in tensors[1:])
