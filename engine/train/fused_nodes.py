@@ -28,9 +28,9 @@ import torch
 from numba import njit
 
 from .fused import _f32  # float32 C-contiguous NumPy view (no copy for float32 tensors)
+from .fused_reg import EPS  # quat_normalize's threshold
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
-EPS = 1e-12  # quat_normalize's threshold
 
 
 @njit(inline="always", **_JIT)
@@ -43,7 +43,7 @@ def _qmul(aw, ax, ay, az, bw, bx, by, bz):
 def _forward(pk, rk, lo, b, c, pos, rot, dq, st):
     """``pk [N, K, 3]``, ``rk [N, K, 4]`` keys, ``b [S]`` weights of keys ``lo..``, ``c [N, 3]``
     centres; writes ``pos [N, 3]``, ``rot [N, 4]``, ``dq [N, 8]`` (float32) and the float64
-    state the backward needs, ``st [N, 16]``: r (4), |r|, u (4), |u|, q (4), ... (unused)."""
+    state the backward needs, ``st [N, 13]``: u (4), |r|, q (4), |u|, τ (3)."""
     N = pk.shape[0]
     S = b.shape[0]
     for i in range(N):
@@ -167,7 +167,7 @@ class _FusedNodeState(torch.autograd.Function):
         pos = np.empty((N, 3), np.float32)
         rot = np.empty((N, 4), np.float32)
         dq = np.empty((N, 8), np.float32)
-        st = np.empty((N, 16))
+        st = np.empty((N, 13))
         _forward(_f32(pos_keys), _f32(rot_keys), int(lo), b, c, pos, rot, dq, st)
         ctx.saved = (int(lo), b, c, st, tuple(pos_keys.shape), tuple(rot_keys.shape))
         ctx.dtypes = (pos_keys.dtype, rot_keys.dtype)
