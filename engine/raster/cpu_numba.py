@@ -10,9 +10,10 @@ Pipeline (forward)::
     project_forward   prange over blocks of Gaussians: EWA projection, conic, radii,
                       alpha>=1/255 box (vectorised across Gaussians, see its docstring)
     bin_tiles         parallel counting sort of instances by tile (per-chunk counts and
-                      cursors), then per tile (prange): depth sort (ties keep the lower
+                      cursors), then per tile (strands of tiles, one per thread,
+                      :func:`tile_strands`): depth sort (ties keep the lower
                       Gaussian index) fused with the copy of per-instance data into tile order
-    raster_forward    prange over tiles: front-to-back compositing with early stop
+    raster_forward    per tile (strands): front-to-back compositing with early stop
 
 Backward mirrors it: ``raster_backward`` walks each tile's list in reverse (as in 3DGS),
 recovering the transmittance by division, and writes per-instance gradients in
@@ -52,28 +53,30 @@ BOX_PAD = np.float32(0.01)
 TENTH = np.float32(0.1)
 FOV_PAD = np.float32(0.3)
 TILE = 16
-# Tiles per work chunk in the tile loops: chunks are handed to threads dynamically, because
-# tiles differ widely in work (and a thread may be descheduled on a shared machine); with
-# the default static split one thread can sit idle while the other finishes its half.
-# Set from Python around the call (see :func:`tile_loop`): calling set_parallel_chunksize
-# inside a kernel would make it uncacheable.
-TILE_CHUNK = 4
+# tile_strands' per-tile work on top of its instance count (reading the tile's pixels in and
+# out costs about as much as compositing this many instances)
+TILE_FIXED_WORK = 8
 # Binning splits the Gaussians into at most MAX_BIN_CHUNKS chunks of >= BIN_CHUNK (each
 # chunk has its own tile counts and cursors; few enough that the prefix sums stay tiny).
 BIN_CHUNK = 2048
 MAX_BIN_CHUNKS = 16
 
 
-# Per-Gaussian kernels are handed out in chunks for the same reason (with the default
-# static split, a thread that is descheduled for a time slice stalls the whole pass):
-# GAUSS_CHUNK Gaussians for the per-Gaussian sums, PROJ_CHUNK blocks (of PF_BLK / PB_BLK
-# Gaussians) for the projection and its backward.
+# Chunk sizes for the per-Gaussian kernels' prange: GAUSS_CHUNK Gaussians for the
+# per-Gaussian sums, PROJ_CHUNK blocks (of PF_BLK / PB_BLK Gaussians) for the projection and
+# its backward. They only take effect on a threading layer that hands chunks out as threads
+# free up (TBB); Numba's OpenMP and workqueue layers split a prange into one contiguous block
+# per thread whatever the chunk size (measured 2026-11-27: a loop whose first half holds 90 %
+# of the work ran in the same time with chunk sizes 0, 1 and 4). Uniform per-Gaussian work
+# does not mind; the tile kernels, whose work is not uniform, balance it themselves
+# (:func:`tile_strands`).
 GAUSS_CHUNK = 4096
 PROJ_CHUNK = 4
 
 
 def dynamic(kernel, chunk, *args):
-    """Call a kernel whose prange is handed out dynamically in chunks of ``chunk`` iterations."""
+    """Call a kernel with its prange chunk size set to ``chunk`` iterations (dynamic hand-out
+    on the TBB layer only; see GAUSS_CHUNK)."""
     prev = get_parallel_chunksize()
     set_parallel_chunksize(chunk)
     try:
@@ -120,12 +123,54 @@ def pooled(key, size, dtype):
         return b[:size]
 
 
-def tile_loop(kernel, *args):
-    """Call a kernel whose prange runs over tiles with dynamic TILE_CHUNK scheduling."""
-    return dynamic(kernel, TILE_CHUNK, *args)
-
-
 _JIT = dict(cache=True, error_model="numpy", nogil=True)
+
+
+@njit(**_JIT)
+def tile_strands(offsets, nstrands):
+    """Split the tiles into ``nstrands`` strands of about equal work: longest-processing-time
+    first (each tile, heaviest first, to the strand with the least work so far), a tile's
+    work taken as its instance count plus TILE_FIXED_WORK. Returns ``order [T]`` int64 (the
+    tiles, strand by strand) and ``starts [nstrands + 1]`` int64 (strand s is
+    ``order[starts[s]:starts[s+1]]``).
+
+    Why: Numba's OpenMP layer splits a prange statically into contiguous blocks (the
+    parallel chunk size does not make it dynamic there), and the tiles' work is anything but
+    uniform (moving objects, dense regions), so one thread finished early and idled: 2
+    threads kept ~1.65 cores busy in the compositing kernels. The tile kernels therefore run
+    a prange over the strands, one per thread."""
+    nt = offsets.shape[0] - 1
+    work = np.empty(nt, np.int64)
+    for t in range(nt):
+        work[t] = offsets[t + 1] - offsets[t] + TILE_FIXED_WORK
+    by_work = np.argsort(-work, kind="mergesort")
+    strand = np.empty(nt, np.int64)
+    load = np.zeros(nstrands, np.int64)
+    count = np.zeros(nstrands + 1, np.int64)
+    for t in by_work:
+        s = np.argmin(load)
+        strand[t] = s
+        load[s] += work[t]
+        count[s + 1] += 1
+    starts = np.cumsum(count)
+    cursor = starts[:-1].copy()
+    order = np.empty(nt, np.int64)
+    for t in by_work:
+        s = strand[t]
+        order[cursor[s]] = t
+        cursor[s] += 1
+    return order, starts
+
+
+def tile_loop(kernel, offsets, *args):
+    """Call a tile kernel ``kernel(offsets, order, starts, *args)`` with the tiles split into
+    one strand per thread (:func:`tile_strands`)."""
+    from numba import get_num_threads
+
+    order, starts = tile_strands(offsets, get_num_threads())
+    return kernel(offsets, order, starts, *args)
+
+
 # The compositing kernels let LLVM reassociate (their lane sums vectorise) but not contract
 # into FMAs: with "contract" the kernel compiled in the running process and the same kernel
 # loaded from the on-disk cache gave different gradients (rounding level, 15 % of the
@@ -441,39 +486,42 @@ def _radix_sort(keys, vals, tmp_k, tmp_v, hist):
 
 
 @njit(parallel=True, **_JIT)
-def _sort_gather(offsets, inst_gid, tiles_x, depths, rec, irec, data, idata):
-    """Per tile (prange): stable depth sort of the list (it arrives in index order, so ties
-    keep the lower index first, like the reference's stable global sort), then copy each
-    Gaussian's record into tile order, data/idata [I, NREC], with R_SLOT set to the
-    instance's Gaussian-major slot: gstart[g] + rank of this tile in g's tile box
-    (row-major). Sort and copy share one pass over the tile's instances."""
-    for t in prange(offsets.shape[0] - 1):
-        a, b = offsets[t], offsets[t + 1]
-        if b <= a:
-            continue
-        m = b - a
-        # Keys: the bits of the (positive) float32 depth, which order like the depths.
-        keys = np.empty(m, np.int64)
-        ids = inst_gid[a:b].copy()
-        for j in range(m):
-            d = max(depths[ids[j]], F0)  # the dense array: fewer cache misses than rec
-            keys[j] = np.int64(np.float32(d).view(np.int32))
-        _radix_sort(keys, ids, np.empty(m, np.int64), np.empty(m, np.int32), np.empty(256, np.int64))
-        tyi = t // tiles_x
-        txi = t - tyi * tiles_x
-        for j in range(m):
-            g = ids[j]
-            k = a + j
-            inst_gid[k] = g
-            for f in range(R_X0):
-                data[k, f] = rec[g, f]
-            x0, x1, y0 = irec[g, R_X0], irec[g, R_X1], irec[g, R_Y0]
-            idata[k, R_X0] = x0
-            idata[k, R_X1] = x1
-            idata[k, R_Y0] = y0
-            idata[k, R_Y1] = irec[g, R_Y1]
-            ntx = (x1 - 1) // TILE - x0 // TILE + 1
-            idata[k, R_SLOT] = irec[g, R_SLOT] + (tyi - y0 // TILE) * ntx + (txi - x0 // TILE)
+def _sort_gather(offsets, order, starts, inst_gid, tiles_x, depths, rec, irec, data, idata):
+    """Per tile (one strand of tiles per thread, :func:`tile_strands`): stable depth sort of
+    the list (it arrives in index order, so ties keep the lower index first, like the
+    reference's stable global sort), then copy each Gaussian's record into tile order,
+    data/idata [I, NREC], with R_SLOT set to the instance's Gaussian-major slot: gstart[g] +
+    rank of this tile in g's tile box (row-major). Sort and copy share one pass over the
+    tile's instances."""
+    for strand in prange(starts.shape[0] - 1):
+        for pos in range(starts[strand], starts[strand + 1]):
+            t = order[pos]
+            a, b = offsets[t], offsets[t + 1]
+            if b <= a:
+                continue
+            m = b - a
+            # Keys: the bits of the (positive) float32 depth, which order like the depths.
+            keys = np.empty(m, np.int64)
+            ids = inst_gid[a:b].copy()
+            for j in range(m):
+                d = max(depths[ids[j]], F0)  # the dense array: fewer cache misses than rec
+                keys[j] = np.int64(np.float32(d).view(np.int32))
+            _radix_sort(keys, ids, np.empty(m, np.int64), np.empty(m, np.int32), np.empty(256, np.int64))
+            tyi = t // tiles_x
+            txi = t - tyi * tiles_x
+            for j in range(m):
+                g = ids[j]
+                k = a + j
+                inst_gid[k] = g
+                for f in range(R_X0):
+                    data[k, f] = rec[g, f]
+                x0, x1, y0 = irec[g, R_X0], irec[g, R_X1], irec[g, R_Y0]
+                idata[k, R_X0] = x0
+                idata[k, R_X1] = x1
+                idata[k, R_Y0] = y0
+                idata[k, R_Y1] = irec[g, R_Y1]
+                ntx = (x1 - 1) // TILE - x0 // TILE + 1
+                idata[k, R_SLOT] = irec[g, R_SLOT] + (tyi - y0 // TILE) * ntx + (txi - x0 // TILE)
 
 
 _NO_EXTRA = np.zeros(0, np.float32)
@@ -658,52 +706,55 @@ def _raster_forward_kernel(xe):
     two kernels: ``xe`` is a closure constant, so the plain variant carries no extra work."""
 
     @njit(parallel=True, fastmath=_FASTMATH, **_JIT)
-    def raster_forward(offsets, data, idata, width, height, tiles_x, bg, out_rgb, out_depth, out_T, out_last,
-                       out_extra):
-        """Front-to-back compositing, one tile per task.
+    def raster_forward(offsets, order, starts, data, idata, width, height, tiles_x, bg, out_rgb, out_depth, out_T,
+                       out_last, out_extra):
+        """Front-to-back compositing, tile by tile (``order``/``starts``: one strand of tiles
+        per thread, :func:`tile_strands`).
 
         ``data``/``idata`` [I, NREC]: instance records from :func:`bin_tiles`.
         Outputs (preallocated): out_rgb [H,W,3] (background included), out_depth [H,W]
         (sum w z), out_T [H,W] final transmittance, out_last [H,W] int32 = number of list
         entries of the pixel's tile up to and including its last composited Gaussian, and with
         ``xe`` out_extra [H,W] (sum w e, field R_E; no background)."""
-        ntiles = offsets.shape[0] - 1
-        for tile in prange(ntiles):
-            ox, oy, tw, th = _tile_box(tile, tiles_x, width, height)
-            # A finished pixel keeps its transmittance negated (-T > 0 can never composite
-            # again), so no separate "done" field is loaded and stored per lane.
-            S = np.zeros(FWD_SLEN_X if xe else FWD_SLEN, np.float32)
-            S[:NPAD] = F1
-            alive = np.float32(tw * th)
-            start = offsets[tile]
-            for k in range(start, offsets[tile + 1]):
-                mx, my, a, b, c, op, r_, g_, b_, z_, e_, y0, y1, bx0, bx1 = _instance(data, idata, k, ox, oy, tw, th)
-                kk = np.float32(k - start + 1)
-                # a box at most 8 pixels wide in this tile takes one 8-lane chunk per row,
-                # a wider one (at most TILE) two; both are compiled with a constant width
-                if bx1 - bx0 <= 8:
-                    stops = _composite_rows(S, U8, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_,
-                                            e_, kk, xe)
-                else:
-                    stops = _composite_rows(S, U16, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_,
-                                            e_, kk, xe)
-                alive -= stops
-                if alive <= F0:
-                    break
-            for yy in range(th):
-                for xx in range(tw):
-                    p = yy * TILE + xx
-                    Y = oy + yy
-                    X = ox + xx
-                    tp = abs(S[p])
-                    out_rgb[Y, X, 0] = S[_R + p] + tp * bg[0]
-                    out_rgb[Y, X, 1] = S[_G + p] + tp * bg[1]
-                    out_rgb[Y, X, 2] = S[_B + p] + tp * bg[2]
-                    out_depth[Y, X] = S[_D + p]
-                    out_T[Y, X] = tp
-                    out_last[Y, X] = np.int32(S[_LAST + p])
-                    if xe:
-                        out_extra[Y, X] = S[_E + p]
+        for strand in prange(starts.shape[0] - 1):
+            for pos in range(starts[strand], starts[strand + 1]):
+                tile = order[pos]
+                ox, oy, tw, th = _tile_box(tile, tiles_x, width, height)
+                # A finished pixel keeps its transmittance negated (-T > 0 can never composite
+                # again), so no separate "done" field is loaded and stored per lane.
+                S = np.zeros(FWD_SLEN_X if xe else FWD_SLEN, np.float32)
+                S[:NPAD] = F1
+                alive = np.float32(tw * th)
+                start = offsets[tile]
+                for k in range(start, offsets[tile + 1]):
+                    mx, my, a, b, c, op, r_, g_, b_, z_, e_, y0, y1, bx0, bx1 = _instance(data, idata, k, ox, oy, tw,
+                                                                                          th)
+                    kk = np.float32(k - start + 1)
+                    # a box at most 8 pixels wide in this tile takes one 8-lane chunk per row,
+                    # a wider one (at most TILE) two; both are compiled with a constant width
+                    if bx1 - bx0 <= 8:
+                        stops = _composite_rows(S, U8, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_,
+                                                e_, kk, xe)
+                    else:
+                        stops = _composite_rows(S, U16, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_,
+                                                e_, kk, xe)
+                    alive -= stops
+                    if alive <= F0:
+                        break
+                for yy in range(th):
+                    for xx in range(tw):
+                        p = yy * TILE + xx
+                        Y = oy + yy
+                        X = ox + xx
+                        tp = abs(S[p])
+                        out_rgb[Y, X, 0] = S[_R + p] + tp * bg[0]
+                        out_rgb[Y, X, 1] = S[_G + p] + tp * bg[1]
+                        out_rgb[Y, X, 2] = S[_B + p] + tp * bg[2]
+                        out_depth[Y, X] = S[_D + p]
+                        out_T[Y, X] = tp
+                        out_last[Y, X] = np.int32(S[_LAST + p])
+                        if xe:
+                            out_extra[Y, X] = S[_E + p]
 
     return raster_forward
 
@@ -834,7 +885,7 @@ def _raster_backward_kernel(xe):
     :func:`_raster_forward_kernel`)."""
 
     @njit(parallel=True, fastmath=_FASTMATH, **_JIT)
-    def raster_backward(offsets, data, idata, width, height, tiles_x, bg, out_T, out_last,
+    def raster_backward(offsets, order, starts, data, idata, width, height, tiles_x, bg, out_T, out_last,
                         g_rgb, g_alpha, g_depth, g_extra, grads):
         """Reverse-order backward of :func:`raster_forward` (as in 3DGS).
 
@@ -845,66 +896,68 @@ def _raster_backward_kernel(xe):
         contiguous rows). Every instance carries per-lane sums down its rows in 8 or 16
         lanes (:func:`_unblend_rows`). ``reassoc`` lets LLVM vectorise the per-Gaussian sums
         over pixels."""
-        ntiles = offsets.shape[0] - 1
-        for tile in prange(ntiles):
-            ox, oy, tw, th = _tile_box(tile, tiles_x, width, height)
-            # T, last, then B (what lies behind the current Gaussian per unit transmittance
-            # after it, dotted with the upstream gradient; starts as g . background), then the
-            # upstream gradients. Zeros elsewhere keep masked lanes inert (last = 0 masks them).
-            S = np.zeros(SLEN_X if xe else SLEN, np.float32)  # 8 fields, then the 10 running sums
-            maxlast = 0
-            for yy in range(th):
-                for xx in range(tw):
-                    p = yy * TILE + xx
-                    Y = oy + yy
-                    X = ox + xx
-                    S[_BT + p] = out_T[Y, X]
-                    S[_BLAST + p] = np.float32(out_last[Y, X])
-                    maxlast = max(maxlast, out_last[Y, X])
-                    S[_BB + p] = g_rgb[Y, X, 0] * bg[0] + g_rgb[Y, X, 1] * bg[1] + g_rgb[Y, X, 2] * bg[2]
-                    S[_GR + p] = g_rgb[Y, X, 0]
-                    S[_GG + p] = g_rgb[Y, X, 1]
-                    S[_GB + p] = g_rgb[Y, X, 2]
-                    S[_GD + p] = g_depth[Y, X]
-                    S[_GA + p] = g_alpha[Y, X]
-                    if xe:
-                        S[_GE + p] = g_extra[Y, X]
-            start = offsets[tile]
-            # entries past every pixel's last composited one get zero gradient
-            for k in range(start + maxlast, offsets[tile + 1]):
-                for f in range(10):
-                    grads[idata[k, R_SLOT], f] = F0
-            for k in range(start + maxlast - 1, start - 1, -1):
-                mx, my, a, b, c, op, r_, g_, b_, z_, e_, y0, y1, bx0, bx1 = _instance(data, idata, k, ox, oy, tw, th)
-                kk = np.float32(k - start)
-                # one 8-lane chunk per row for a box at most 8 wide, two for a wider one (at
-                # most TILE): constant widths, compiled separately
-                if bx1 - bx0 <= 8:
-                    s_r, s_g, s_bb, s_z, s_o, t_x, t_xx, t_y, t_xy, t_yy = _unblend_rows(
-                        S, U8, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_, e_, kk, xe)
-                else:
-                    s_r, s_g, s_bb, s_z, s_o, t_x, t_xx, t_y, t_xy, t_yy = _unblend_rows(
-                        S, U16, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_, e_, kk, xe)
-                # d sigma / d(mx, my, a, b, c) = (-(a dx + b dy), -(b dx + c dy), dx^2/2, dx dy, dy^2/2)
-                # times dL/dsigma = -op u, summed over the pixels: a t_x + b t_y and so on; the
-                # factor op (and 1/2) is applied once per instance
-                opq = op * HALF
-                s_mx = (a * t_x + b * t_y) * op
-                s_my = (b * t_x + c * t_y) * op
-                s_a = -t_xx * opq
-                s_b = -t_xy * op
-                s_c = -t_yy * opq
-                slot = idata[k, R_SLOT]
-                grads[slot, 0] = s_mx
-                grads[slot, 1] = s_my
-                grads[slot, 2] = s_a
-                grads[slot, 3] = s_b
-                grads[slot, 4] = s_c
-                grads[slot, 5] = s_o
-                grads[slot, 6] = s_r
-                grads[slot, 7] = s_g
-                grads[slot, 8] = s_bb
-                grads[slot, 9] = s_z
+        for strand in prange(starts.shape[0] - 1):
+            for pos in range(starts[strand], starts[strand + 1]):
+                tile = order[pos]
+                ox, oy, tw, th = _tile_box(tile, tiles_x, width, height)
+                # T, last, then B (what lies behind the current Gaussian per unit transmittance
+                # after it, dotted with the upstream gradient; starts as g . background), then the
+                # upstream gradients. Zeros elsewhere keep masked lanes inert (last = 0 masks them).
+                S = np.zeros(SLEN_X if xe else SLEN, np.float32)  # 8 fields, then the 10 running sums
+                maxlast = 0
+                for yy in range(th):
+                    for xx in range(tw):
+                        p = yy * TILE + xx
+                        Y = oy + yy
+                        X = ox + xx
+                        S[_BT + p] = out_T[Y, X]
+                        S[_BLAST + p] = np.float32(out_last[Y, X])
+                        maxlast = max(maxlast, out_last[Y, X])
+                        S[_BB + p] = g_rgb[Y, X, 0] * bg[0] + g_rgb[Y, X, 1] * bg[1] + g_rgb[Y, X, 2] * bg[2]
+                        S[_GR + p] = g_rgb[Y, X, 0]
+                        S[_GG + p] = g_rgb[Y, X, 1]
+                        S[_GB + p] = g_rgb[Y, X, 2]
+                        S[_GD + p] = g_depth[Y, X]
+                        S[_GA + p] = g_alpha[Y, X]
+                        if xe:
+                            S[_GE + p] = g_extra[Y, X]
+                start = offsets[tile]
+                # entries past every pixel's last composited one get zero gradient
+                for k in range(start + maxlast, offsets[tile + 1]):
+                    for f in range(10):
+                        grads[idata[k, R_SLOT], f] = F0
+                for k in range(start + maxlast - 1, start - 1, -1):
+                    mx, my, a, b, c, op, r_, g_, b_, z_, e_, y0, y1, bx0, bx1 = _instance(data, idata, k, ox, oy, tw,
+                                                                                          th)
+                    kk = np.float32(k - start)
+                    # one 8-lane chunk per row for a box at most 8 wide, two for a wider one (at
+                    # most TILE): constant widths, compiled separately
+                    if bx1 - bx0 <= 8:
+                        s_r, s_g, s_bb, s_z, s_o, t_x, t_xx, t_y, t_xy, t_yy = _unblend_rows(
+                            S, U8, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_, e_, kk, xe)
+                    else:
+                        s_r, s_g, s_bb, s_z, s_o, t_x, t_xx, t_y, t_xy, t_yy = _unblend_rows(
+                            S, U16, y0, y1, oy, ox, bx0, bx1, mx, my, a, b, c, op, r_, g_, b_, z_, e_, kk, xe)
+                    # d sigma / d(mx, my, a, b, c) = (-(a dx + b dy), -(b dx + c dy), dx^2/2, dx dy, dy^2/2)
+                    # times dL/dsigma = -op u, summed over the pixels: a t_x + b t_y and so on; the
+                    # factor op (and 1/2) is applied once per instance
+                    opq = op * HALF
+                    s_mx = (a * t_x + b * t_y) * op
+                    s_my = (b * t_x + c * t_y) * op
+                    s_a = -t_xx * opq
+                    s_b = -t_xy * op
+                    s_c = -t_yy * opq
+                    slot = idata[k, R_SLOT]
+                    grads[slot, 0] = s_mx
+                    grads[slot, 1] = s_my
+                    grads[slot, 2] = s_a
+                    grads[slot, 3] = s_b
+                    grads[slot, 4] = s_c
+                    grads[slot, 5] = s_o
+                    grads[slot, 6] = s_r
+                    grads[slot, 7] = s_g
+                    grads[slot, 8] = s_bb
+                    grads[slot, 9] = s_z
         return grads
 
     return raster_backward

@@ -199,6 +199,55 @@ def test_cpu_renders_in_flight_keep_their_buffers():
             assert torch.equal(a[k].grad, b[k].grad), k
 
 
+def test_tile_strands_cover_every_tile_once_and_balance_the_work():
+    """The tile kernels run one strand of tiles per thread: every tile in exactly one strand,
+    and (longest-processing-time first) no strand's work above the lightest one's by more
+    than the heaviest single tile."""
+    import numpy as np
+
+    from engine.raster import cpu_numba as K_
+
+    rng = np.random.default_rng(0)
+    counts = rng.integers(0, 40, 180)
+    counts[50:60] = rng.integers(500, 1500, 10)  # a dense region: one block of heavy tiles
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    work = counts + K_.TILE_FIXED_WORK
+    for nstrands in (1, 2, 3, 8):
+        order, starts = K_.tile_strands(offsets, nstrands)
+        assert starts[0] == 0 and starts[-1] == 180 and np.all(np.diff(starts) >= 0)
+        assert np.array_equal(np.sort(order), np.arange(180))
+        loads = np.add.reduceat(work[order], starts[:-1]) if nstrands > 1 else np.array([work.sum()])
+        assert loads.sum() == work.sum()
+        assert loads.max() - loads.min() <= work.max(), (nstrands, loads)
+    # contiguous halves (a static split of the tile range) would leave one thread with the
+    # whole dense block; the strands split it
+    order, starts = K_.tile_strands(offsets, 2)
+    halves = work[:90].sum(), work[90:].sum()
+    loads = work[order[:starts[1]]].sum(), work[order[starts[1]:]].sum()
+    assert max(loads) < 0.55 * work.sum() < max(halves)
+
+
+def test_cpu_render_does_not_depend_on_the_thread_count():
+    """Tiles go to threads by work (:func:`tile_strands`); which thread renders a tile must
+    change nothing, forward or backward."""
+    import numba
+
+    scene = _scene(n=400, seed=9)
+    n = torch.get_num_threads()
+    runs = []
+    try:
+        for threads in (1, min(3, numba.config.NUMBA_NUM_THREADS)):
+            torch.set_num_threads(threads)
+            runs.append(_run("cpu", scene, torch.float32))
+    finally:
+        torch.set_num_threads(n)
+    (o1, g1), (o2, g2) = runs
+    for a, b in ((o1.rgb, o2.rgb), (o1.alpha, o2.alpha), (o1.depth, o2.depth)):
+        assert torch.equal(a, b)
+    for k in g1:
+        assert torch.equal(g1[k], g2[k]), k
+
+
 def test_scratch_pool_reuses_only_free_buffers():
     import numpy as np
 
