@@ -16,13 +16,14 @@ backward
 
 The blend weights and the binding carry no gradient (they are buffers). Everything is
 float64 inside the kernels; tensors in and out are float32 on the CPU (read and written
-in place, no conversion copies). The per-Gaussian passes run in parallel (``prange``,
-each Gaussian writes only its own rows); only the scatter to the nodes is serial. The torch
-implementation stays the reference; ``tests/engine/test_train.py`` compares both.
+in place, no conversion copies). The per-Gaussian passes run in parallel (blocks of rows
+dealt to one strand per thread, :data:`ROW_BLOCK`; each Gaussian writes only its own rows);
+only the scatter to the nodes is serial. The torch implementation stays the reference; ``tests/engine/test_train.py`` compares both.
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import torch
 from numba import njit, prange
@@ -30,6 +31,11 @@ from numba import njit, prange
 from .fused_ssim import kernel_threads
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+# The per-Gaussian passes deal blocks of ROW_BLOCK rows round-robin to one strand per thread
+# instead of a plain prange: Numba's OpenMP layer splits a prange into one contiguous block per
+# thread, and the rows are not uniform work (static Gaussians at rest come first and take the
+# short path), so one thread got the cheap half (1.4 of 2 cores busy in the training bench).
+ROW_BLOCK = 64
 
 
 @njit(inline="always", **_JIT)
@@ -55,38 +61,41 @@ def _resting(node_rest, idx, g):
 
 
 @njit(parallel=True, **_JIT)
-def _forward(dqn, idx, w, x, q, normalize, node_rest, out_x, out_q, blend, sgn, rest):
-    """Per Gaussian (prange: each writes only its own rows). ``x [G, 3]``, ``q [G, 4]``,
-    ``w [G, K]`` float32 read as float64; ``q`` normalised here when ``normalize``. A Gaussian
+def _forward(dqn, idx, w, x, q, normalize, node_rest, out_x, out_q, blend, sgn, rest, nstrands):
+    """Per Gaussian (rows dealt to ``nstrands`` strands, :data:`ROW_BLOCK`; each writes only
+    its own rows). ``x [G, 3]``, ``q [G, 4]``, ``w [G, K]`` float32 read as float64; ``q`` normalised here when ``normalize``. A Gaussian
     whose nodes are all at rest (``node_rest``) takes the identity as its blend (``rest [G]``
     notes it for the backward)."""
     G, K = idx.shape
-    for g in prange(G):
-        b = blend[g]
-        if _resting(node_rest, idx, g):  # (its sgn row is never read: backward and scatter skip it)
-            rest[g] = 1
-            b[0] = 1.0
-            for c in range(1, 8):
-                b[c] = 0.0
-            _apply(b, x, q, g, normalize, out_x, out_q)
-            continue
-        rest[g] = 0
-        piv = 0
-        for k in range(1, K):
-            if w[g, k] > w[g, piv]:
-                piv = k
-        p = idx[g, piv]
-        for c in range(8):
-            b[c] = 0.0
-        for k in range(K):
-            j = idx[g, k]
-            dot = dqn[j, 0] * dqn[p, 0] + dqn[j, 1] * dqn[p, 1] + dqn[j, 2] * dqn[p, 2] + dqn[j, 3] * dqn[p, 3]
-            s = -1.0 if dot < 0 else 1.0
-            sgn[g, k] = s
-            ws = np.float64(w[g, k]) * s
-            for c in range(8):
-                b[c] += ws * dqn[j, c]
-        _apply(b, x, q, g, normalize, out_x, out_q)
+    nblk = (G + ROW_BLOCK - 1) // ROW_BLOCK
+    for strand in prange(nstrands):
+        for blk in range(strand, nblk, nstrands):
+            for g in range(blk * ROW_BLOCK, min(G, (blk + 1) * ROW_BLOCK)):
+                b = blend[g]
+                if _resting(node_rest, idx, g):  # (its sgn row is never read: backward and scatter skip it)
+                    rest[g] = 1
+                    b[0] = 1.0
+                    for c in range(1, 8):
+                        b[c] = 0.0
+                    _apply(b, x, q, g, normalize, out_x, out_q)
+                    continue
+                rest[g] = 0
+                piv = 0
+                for k in range(1, K):
+                    if w[g, k] > w[g, piv]:
+                        piv = k
+                p = idx[g, piv]
+                for c in range(8):
+                    b[c] = 0.0
+                for k in range(K):
+                    j = idx[g, k]
+                    dot = dqn[j, 0] * dqn[p, 0] + dqn[j, 1] * dqn[p, 1] + dqn[j, 2] * dqn[p, 2] + dqn[j, 3] * dqn[p, 3]
+                    s = -1.0 if dot < 0 else 1.0
+                    sgn[g, k] = s
+                    ws = np.float64(w[g, k]) * s
+                    for c in range(8):
+                        b[c] += ws * dqn[j, c]
+                _apply(b, x, q, g, normalize, out_x, out_q)
 
 
 @njit(inline="always", **_JIT)
@@ -160,89 +169,92 @@ def _resting_backward(q, g, normalize, gxo, gqo, g_x, g_q):
 
 
 @njit(parallel=True, **_JIT)
-def _backward(dqn, idx, w, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x, g_q):
-    """Per Gaussian (prange): gradients to ``x``, ``q`` (through the normalisation when
+def _backward(dqn, idx, w, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x, g_q, nstrands):
+    """Per Gaussian (strands of row blocks as in :func:`_forward`): gradients to ``x``, ``q`` (through the normalisation when
     ``normalize``) and to the blended DQ, ``gbs [G, 8]``; :func:`_scatter_nodes` then sums
     those into the node DQs serially. Resting rows (``rest [G]``) take the short path."""
     G, K = idx.shape
-    for g in prange(G):
-        if rest[g]:
-            _resting_backward(q, g, normalize, gxo, gqo, g_x, g_q)
-            continue
-        gb = gbs[g]
-        b = blend[g]
-        n = np.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2] + b[3] * b[3])
-        if n < 1e-12:
-            n = 1e-12
-        rw, rx, ry, rz = b[0] / n, b[1] / n, b[2] / n, b[3] / n
-        dw, dx, dy, dz = b[4] / n, b[5] / n, b[6] / n, b[7] / n
-        px, py, pz = np.float64(x[g, 0]), np.float64(x[g, 1]), np.float64(x[g, 2])
-        gx, gy, gz = np.float64(gxo[g, 0]), np.float64(gxo[g, 1]), np.float64(gxo[g, 2])
-        # --- points: y = R(qr) p + t
-        xx, yy, zz = rx * rx, ry * ry, rz * rz
-        xy, xz, yz, wx, wy, wz = rx * ry, rx * rz, ry * rz, rw * rx, rw * ry, rw * rz
-        r00, r01, r02 = 1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)
-        r10, r11, r12 = 2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)
-        r20, r21, r22 = 2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)
-        g_x[g, 0] = r00 * gx + r10 * gy + r20 * gz
-        g_x[g, 1] = r01 * gx + r11 * gy + r21 * gz
-        g_x[g, 2] = r02 * gx + r12 * gy + r22 * gz
-        # G_ij = gy_i p_j ; g_q_c = sum G_ij dR_ij/dq_c
-        G00, G01, G02 = gx * px, gx * py, gx * pz
-        G10, G11, G12 = gy * px, gy * py, gy * pz
-        G20, G21, G22 = gz * px, gz * py, gz * pz
-        grw = 2 * (-rz * G01 + ry * G02 + rz * G10 - rx * G12 - ry * G20 + rx * G21)
-        grx = 2 * (ry * G01 + rz * G02 + ry * G10 - 2 * rx * G11 - rw * G12 + rz * G20 + rw * G21 - 2 * rx * G22)
-        gry = 2 * (-2 * ry * G00 + rx * G01 + rw * G02 + rx * G10 + rz * G12 - rw * G20 + rz * G21 - 2 * ry * G22)
-        grz = 2 * (-2 * rz * G00 - rw * G01 + rx * G02 + rw * G10 - 2 * rz * G11 + ry * G12 + rx * G20 + ry * G21)
-        # --- translation t = vec(P), P = 2 qd ⊗ c, c = conj(qr); g_P = (0, g)
-        # g_qd = 2 g_P ⊗ conj(c) = 2 g_P ⊗ qr
-        ew, ex, ey, ez = 0.0, gx, gy, gz
-        gdw = 2 * (ew * rw - ex * rx - ey * ry - ez * rz)
-        gdx = 2 * (ew * rx + ex * rw + ey * rz - ez * ry)
-        gdy = 2 * (ew * ry - ex * rz + ey * rw + ez * rx)
-        gdz = 2 * (ew * rz + ex * ry - ey * rx + ez * rw)
-        # g_c = 2 conj(qd) ⊗ g_P ; g_qr += conj(g_c)
-        aw, ax, ay, az = dw, -dx, -dy, -dz
-        cw = 2 * (aw * ew - ax * ex - ay * ey - az * ez)
-        cx = 2 * (aw * ex + ax * ew + ay * ez - az * ey)
-        cy = 2 * (aw * ey - ax * ez + ay * ew + az * ex)
-        cz = 2 * (aw * ez + ax * ey - ay * ex + az * ew)
-        grw += cw
-        grx -= cx
-        gry -= cy
-        grz -= cz
-        # --- rotations: o = r/|r|, r = qr ⊗ a
-        aw, ax, ay, az = _unit(q, g, normalize)
-        ow, ox, oy, oz, on = _rotated(rw, rx, ry, rz, q, g, normalize)
-        if on > 1e-12:
-            uw, ux, uy, uz = ow / on, ox / on, oy / on, oz / on
-            hw, hx, hy, hz = np.float64(gqo[g, 0]), np.float64(gqo[g, 1]), np.float64(gqo[g, 2]), np.float64(gqo[g, 3])
-            d = uw * hw + ux * hx + uy * hy + uz * hz
-            hw, hx, hy, hz = (hw - uw * d) / on, (hx - ux * d) / on, (hy - uy * d) / on, (hz - uz * d) / on
-            # g_qr += h ⊗ conj(a)
-            bw, bx, by, bz = aw, -ax, -ay, -az
-            grw += hw * bw - hx * bx - hy * by - hz * bz
-            grx += hw * bx + hx * bw + hy * bz - hz * by
-            gry += hw * by - hx * bz + hy * bw + hz * bx
-            grz += hw * bz + hx * by - hy * bx + hz * bw
-            # g_a = conj(qr) ⊗ h
-            cw_, cx_, cy_, cz_ = rw, -rx, -ry, -rz
-            ea = cw_ * hw - cx_ * hx - cy_ * hy - cz_ * hz
-            eb = cw_ * hx + cx_ * hw + cy_ * hz - cz_ * hy
-            ec = cw_ * hy - cx_ * hz + cy_ * hw + cz_ * hx
-            ed = cw_ * hz + cx_ * hy - cy_ * hx + cz_ * hw
-            _canonical_quat_grad(q, g, normalize, ea, eb, ec, ed, g_q)
-        else:
-            g_q[g, 0], g_q[g, 1], g_q[g, 2], g_q[g, 3] = 0.0, 0.0, 0.0, 0.0
-        # --- normalisation: qr = br/n, qd = bd/n
-        dr = rw * grw + rx * grx + ry * gry + rz * grz
-        dd = dw * gdw + dx * gdx + dy * gdy + dz * gdz
-        gb[0] = (grw - rw * dr - rw * dd) / n
-        gb[1] = (grx - rx * dr - rx * dd) / n
-        gb[2] = (gry - ry * dr - ry * dd) / n
-        gb[3] = (grz - rz * dr - rz * dd) / n
-        gb[4], gb[5], gb[6], gb[7] = gdw / n, gdx / n, gdy / n, gdz / n
+    nblk = (G + ROW_BLOCK - 1) // ROW_BLOCK
+    for strand in prange(nstrands):
+        for blk in range(strand, nblk, nstrands):
+            for g in range(blk * ROW_BLOCK, min(G, (blk + 1) * ROW_BLOCK)):
+                if rest[g]:
+                    _resting_backward(q, g, normalize, gxo, gqo, g_x, g_q)
+                    continue
+                gb = gbs[g]
+                b = blend[g]
+                n = np.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2] + b[3] * b[3])
+                if n < 1e-12:
+                    n = 1e-12
+                rw, rx, ry, rz = b[0] / n, b[1] / n, b[2] / n, b[3] / n
+                dw, dx, dy, dz = b[4] / n, b[5] / n, b[6] / n, b[7] / n
+                px, py, pz = np.float64(x[g, 0]), np.float64(x[g, 1]), np.float64(x[g, 2])
+                gx, gy, gz = np.float64(gxo[g, 0]), np.float64(gxo[g, 1]), np.float64(gxo[g, 2])
+                # --- points: y = R(qr) p + t
+                xx, yy, zz = rx * rx, ry * ry, rz * rz
+                xy, xz, yz, wx, wy, wz = rx * ry, rx * rz, ry * rz, rw * rx, rw * ry, rw * rz
+                r00, r01, r02 = 1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)
+                r10, r11, r12 = 2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)
+                r20, r21, r22 = 2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)
+                g_x[g, 0] = r00 * gx + r10 * gy + r20 * gz
+                g_x[g, 1] = r01 * gx + r11 * gy + r21 * gz
+                g_x[g, 2] = r02 * gx + r12 * gy + r22 * gz
+                # G_ij = gy_i p_j ; g_q_c = sum G_ij dR_ij/dq_c
+                G00, G01, G02 = gx * px, gx * py, gx * pz
+                G10, G11, G12 = gy * px, gy * py, gy * pz
+                G20, G21, G22 = gz * px, gz * py, gz * pz
+                grw = 2 * (-rz * G01 + ry * G02 + rz * G10 - rx * G12 - ry * G20 + rx * G21)
+                grx = 2 * (ry * G01 + rz * G02 + ry * G10 - 2 * rx * G11 - rw * G12 + rz * G20 + rw * G21 - 2 * rx * G22)
+                gry = 2 * (-2 * ry * G00 + rx * G01 + rw * G02 + rx * G10 + rz * G12 - rw * G20 + rz * G21 - 2 * ry * G22)
+                grz = 2 * (-2 * rz * G00 - rw * G01 + rx * G02 + rw * G10 - 2 * rz * G11 + ry * G12 + rx * G20 + ry * G21)
+                # --- translation t = vec(P), P = 2 qd ⊗ c, c = conj(qr); g_P = (0, g)
+                # g_qd = 2 g_P ⊗ conj(c) = 2 g_P ⊗ qr
+                ew, ex, ey, ez = 0.0, gx, gy, gz
+                gdw = 2 * (ew * rw - ex * rx - ey * ry - ez * rz)
+                gdx = 2 * (ew * rx + ex * rw + ey * rz - ez * ry)
+                gdy = 2 * (ew * ry - ex * rz + ey * rw + ez * rx)
+                gdz = 2 * (ew * rz + ex * ry - ey * rx + ez * rw)
+                # g_c = 2 conj(qd) ⊗ g_P ; g_qr += conj(g_c)
+                aw, ax, ay, az = dw, -dx, -dy, -dz
+                cw = 2 * (aw * ew - ax * ex - ay * ey - az * ez)
+                cx = 2 * (aw * ex + ax * ew + ay * ez - az * ey)
+                cy = 2 * (aw * ey - ax * ez + ay * ew + az * ex)
+                cz = 2 * (aw * ez + ax * ey - ay * ex + az * ew)
+                grw += cw
+                grx -= cx
+                gry -= cy
+                grz -= cz
+                # --- rotations: o = r/|r|, r = qr ⊗ a
+                aw, ax, ay, az = _unit(q, g, normalize)
+                ow, ox, oy, oz, on = _rotated(rw, rx, ry, rz, q, g, normalize)
+                if on > 1e-12:
+                    uw, ux, uy, uz = ow / on, ox / on, oy / on, oz / on
+                    hw, hx, hy, hz = np.float64(gqo[g, 0]), np.float64(gqo[g, 1]), np.float64(gqo[g, 2]), np.float64(gqo[g, 3])
+                    d = uw * hw + ux * hx + uy * hy + uz * hz
+                    hw, hx, hy, hz = (hw - uw * d) / on, (hx - ux * d) / on, (hy - uy * d) / on, (hz - uz * d) / on
+                    # g_qr += h ⊗ conj(a)
+                    bw, bx, by, bz = aw, -ax, -ay, -az
+                    grw += hw * bw - hx * bx - hy * by - hz * bz
+                    grx += hw * bx + hx * bw + hy * bz - hz * by
+                    gry += hw * by - hx * bz + hy * bw + hz * bx
+                    grz += hw * bz + hx * by - hy * bx + hz * bw
+                    # g_a = conj(qr) ⊗ h
+                    cw_, cx_, cy_, cz_ = rw, -rx, -ry, -rz
+                    ea = cw_ * hw - cx_ * hx - cy_ * hy - cz_ * hz
+                    eb = cw_ * hx + cx_ * hw + cy_ * hz - cz_ * hy
+                    ec = cw_ * hy - cx_ * hz + cy_ * hw + cz_ * hx
+                    ed = cw_ * hz + cx_ * hy - cy_ * hx + cz_ * hw
+                    _canonical_quat_grad(q, g, normalize, ea, eb, ec, ed, g_q)
+                else:
+                    g_q[g, 0], g_q[g, 1], g_q[g, 2], g_q[g, 3] = 0.0, 0.0, 0.0, 0.0
+                # --- normalisation: qr = br/n, qd = bd/n
+                dr = rw * grw + rx * grx + ry * gry + rz * grz
+                dd = dw * gdw + dx * gdx + dy * gdy + dz * gdz
+                gb[0] = (grw - rw * dr - rw * dd) / n
+                gb[1] = (grx - rx * dr - rx * dd) / n
+                gb[2] = (gry - ry * dr - ry * dd) / n
+                gb[3] = (grz - rz * dr - rz * dd) / n
+                gb[4], gb[5], gb[6], gb[7] = gdw / n, gdx / n, gdy / n, gdz / n
 
 
 @njit(**_JIT)
@@ -279,7 +291,8 @@ class _FusedDeform(torch.autograd.Function):
         sgn = np.empty((G, K))
         rest = np.empty(G, np.uint8)
         with kernel_threads():
-            _forward(dqn, idx_np, w_np, x, q, bool(normalize), rest_np, out_x, out_q, blend, sgn, rest)
+            _forward(dqn, idx_np, w_np, x, q, bool(normalize), rest_np, out_x, out_q, blend, sgn, rest,
+                     numba.get_num_threads())
         ctx.saved = (dqn, idx_np, w_np, x, q, bool(normalize), blend, sgn, rest, dq_nodes.shape[0])
         return torch.from_numpy(out_x), torch.from_numpy(out_q)
 
@@ -294,7 +307,8 @@ class _FusedDeform(torch.autograd.Function):
         g_x = np.empty((G, 3), np.float32)
         g_q = np.empty((G, 4), np.float32)
         with kernel_threads():
-            _backward(dqn, idx_np, w_np, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x, g_q)
+            _backward(dqn, idx_np, w_np, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x, g_q,
+                      numba.get_num_threads())
         _scatter_nodes(idx_np, w_np, sgn, gbs, rest, g_dqn)
         return (torch.from_numpy(g_dqn).to(torch.float32), None, None, torch.from_numpy(g_x),
                 torch.from_numpy(g_q), None, None)

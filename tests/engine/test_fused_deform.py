@@ -52,6 +52,31 @@ def test_fused_deform_is_deterministic():
         assert torch.equal(x, y)
 
 
+def test_fused_deform_does_not_depend_on_the_thread_count():
+    """Row blocks are dealt to one strand per thread (engine/train/fused.py, ROW_BLOCK): the
+    values and gradients are the same whichever thread does a row, resting rows included
+    (2000 rows: the last block is partial)."""
+    import numba
+
+    m = _scene(seed=4)
+    with torch.no_grad():
+        static = torch.arange(m.num_nodes) % 2 == 0
+        m.node_dyn.copy_(~static)
+        m.pos_keys[static] = m.node_centers[static][:, None]
+        m.rot_keys[static] = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    m.rebind()
+    n = torch.get_num_threads()
+    runs = []
+    try:
+        for threads in (1, min(3, numba.config.NUMBA_NUM_THREADS)):
+            torch.set_num_threads(threads)
+            runs.append(_run(m, True))
+    finally:
+        torch.set_num_threads(n)
+    for x, y in zip(*runs):
+        assert torch.equal(x, y)
+
+
 def test_fused_deform_points_matches_reference():
     m = _scene(seed=5)
     pts = torch.randn(300, 3, requires_grad=True)
