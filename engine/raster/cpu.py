@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 
+import numba
 import numpy as np
 import torch
 
@@ -27,8 +28,6 @@ from .reference import EPS2D
 def kernel_threads():
     """Run the Numba kernels inside with torch's thread count (``numba.set_num_threads``
     applies to the calling thread only; no process-wide state changes)."""
-    import numba
-
     numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
     yield
 
@@ -148,7 +147,8 @@ class RasterizeCPU(torch.autograd.Function):
             grads = K_.pooled("grads", data.shape[0] * 10, np.float32).reshape(-1, 10)
             inst = K_.tile_loop(K_.raster_backward_extra if xe else K_.raster_backward, offsets, data, idata, W, H,
                                 tx, bg, T, last, gr, ga, gd, ge, grads)
-            K_.dynamic(K_.sum_instances, K_.GAUSS_CHUNK, gstart, inst, v_m2, v_cn, v_op, v_col, v_dz)
+            K_.sum_instances(gstart, K_.instance_bounds(gstart, numba.get_num_threads()), inst, v_m2, v_cn, v_op,
+                             v_col, v_dz)
         d = ctx.dtypes
         v_bg = None
         if ctx.has_bg and ctx.needs_input_grad[9]:

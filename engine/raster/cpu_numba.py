@@ -17,8 +17,8 @@ Pipeline (forward)::
 
 Backward mirrors it: ``raster_backward`` walks each tile's list in reverse (as in 3DGS),
 recovering the transmittance by division, and writes per-instance gradients in
-Gaussian-major order, which ``sum_instances`` sums per Gaussian (prange over Gaussians,
-contiguous rows, no write conflicts); ``project_backward`` chains them to the 3D
+Gaussian-major order, which ``sum_instances`` sums per Gaussian (contiguous ranges of
+Gaussians of equal work, contiguous rows, no write conflicts); ``project_backward`` chains them to the 3D
 parameters. Semantics are those of :mod:`engine.raster.reference`.
 
 Where the time goes (200k Gaussians at 512x512, 2 threads, wall ms, best of 15 per stage,
@@ -36,7 +36,7 @@ import sys
 import threading
 
 import numpy as np
-from numba import get_parallel_chunksize, njit, prange, set_parallel_chunksize
+from numba import get_num_threads, get_parallel_chunksize, njit, prange, set_parallel_chunksize
 
 F0 = np.float32(0.0)
 F1 = np.float32(1.0)
@@ -62,21 +62,19 @@ BIN_CHUNK = 2048
 MAX_BIN_CHUNKS = 16
 
 
-# Chunk sizes for the per-Gaussian kernels' prange: GAUSS_CHUNK Gaussians for the
-# per-Gaussian sums, PROJ_CHUNK blocks (of PF_BLK / PB_BLK Gaussians) for the projection and
-# its backward. They only take effect on a threading layer that hands chunks out as threads
-# free up (TBB); Numba's OpenMP and workqueue layers split a prange into one contiguous block
-# per thread whatever the chunk size (measured 2026-11-27: a loop whose first half holds 90 %
-# of the work ran in the same time with chunk sizes 0, 1 and 4). Uniform per-Gaussian work
-# does not mind; the tile kernels, whose work is not uniform, balance it themselves
-# (:func:`tile_strands`).
-GAUSS_CHUNK = 4096
+# Chunk size of the projection's prange and its backward's: PROJ_CHUNK blocks (of PF_BLK /
+# PB_BLK Gaussians). It only takes effect on a threading layer that hands chunks out as
+# threads free up (TBB); Numba's OpenMP and workqueue layers split a prange into one
+# contiguous block per thread whatever the chunk size (measured 2026-11-27: a loop whose first
+# half holds 90 % of the work ran in the same time with chunk sizes 0, 1 and 4). The
+# projection's work is uniform per Gaussian and does not mind; the kernels whose work is not
+# uniform balance it themselves (:func:`tile_strands`, :func:`instance_bounds`).
 PROJ_CHUNK = 4
 
 
 def dynamic(kernel, chunk, *args):
     """Call a kernel with its prange chunk size set to ``chunk`` iterations (dynamic hand-out
-    on the TBB layer only; see GAUSS_CHUNK)."""
+    on the TBB layer only; see PROJ_CHUNK)."""
     prev = get_parallel_chunksize()
     set_parallel_chunksize(chunk)
     try:
@@ -165,8 +163,6 @@ def tile_strands(offsets, nstrands):
 def tile_loop(kernel, offsets, *args):
     """Call a tile kernel ``kernel(offsets, order, starts, *args)`` with the tiles split into
     one strand per thread (:func:`tile_strands`)."""
-    from numba import get_num_threads
-
     order, starts = tile_strands(offsets, get_num_threads())
     return kernel(offsets, order, starts, *args)
 
@@ -967,36 +963,64 @@ raster_backward = _raster_backward_kernel(False)
 raster_backward_extra = _raster_backward_kernel(True)
 
 
+@njit(**_JIT)
+def instance_bounds(gstart, nstrands):
+    """Split the Gaussians into ``nstrands`` contiguous ranges of about equal work for
+    :func:`sum_instances`: a Gaussian's work taken as its instance count plus one (its
+    writes), so the cumulative work up to Gaussian ``g`` is ``gstart[g] + g``, monotone, and
+    each bound is a binary search. Returns ``bounds [nstrands + 1]`` int64 (strand s sums
+    Gaussians ``bounds[s]:bounds[s+1]``). Why not a plain prange: the OpenMP layer splits it
+    into equal Gaussian counts (see GAUSS_CHUNK), and instance counts differ by Gaussian
+    size, so one thread summed most of the rows."""
+    n = gstart.shape[0] - 1
+    total = gstart[n] + n
+    bounds = np.empty(nstrands + 1, np.int64)
+    bounds[0] = 0
+    bounds[nstrands] = n
+    for s in range(1, nstrands):
+        target = total * s // nstrands
+        lo, hi = bounds[s - 1], n  # first g with gstart[g] + g >= target
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if gstart[mid] + mid < target:
+                lo = mid + 1
+            else:
+                hi = mid
+        bounds[s] = lo
+    return bounds
+
+
 @njit(parallel=True, **_JIT)
-def sum_instances(gstart, grads, v_means2d, v_conics, v_opac, v_colors, v_depths):
+def sum_instances(gstart, bounds, grads, v_means2d, v_conics, v_opac, v_colors, v_depths):
     """Per-Gaussian sums of the per-instance gradients ``grads [I, 10]`` (rows in
-    Gaussian-major order: Gaussian g owns ``gstart[g]:gstart[g+1]``), prange over
-    Gaussians: contiguous reads, no write conflicts, fixed summation order. Outputs
-    (preallocated, overwritten): v_means2d [N,2], v_conics [N,3], v_opac [N],
-    v_colors [N,3], v_depths [N]."""
-    for g in prange(gstart.shape[0] - 1):
-        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = F0
-        for k in range(gstart[g], gstart[g + 1]):
-            s0 += grads[k, 0]
-            s1 += grads[k, 1]
-            s2 += grads[k, 2]
-            s3 += grads[k, 3]
-            s4 += grads[k, 4]
-            s5 += grads[k, 5]
-            s6 += grads[k, 6]
-            s7 += grads[k, 7]
-            s8 += grads[k, 8]
-            s9 += grads[k, 9]
-        v_means2d[g, 0] = s0
-        v_means2d[g, 1] = s1
-        v_conics[g, 0] = s2
-        v_conics[g, 1] = s3
-        v_conics[g, 2] = s4
-        v_opac[g] = s5
-        v_colors[g, 0] = s6
-        v_colors[g, 1] = s7
-        v_colors[g, 2] = s8
-        v_depths[g] = s9
+    Gaussian-major order: Gaussian g owns ``gstart[g]:gstart[g+1]``), one strand of
+    Gaussians per thread (``bounds`` from :func:`instance_bounds`): contiguous reads, no write
+    conflicts, fixed summation order. Outputs (preallocated, overwritten): v_means2d [N,2],
+    v_conics [N,3], v_opac [N], v_colors [N,3], v_depths [N]."""
+    for strand in prange(bounds.shape[0] - 1):
+        for g in range(bounds[strand], bounds[strand + 1]):
+            s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = F0
+            for k in range(gstart[g], gstart[g + 1]):
+                s0 += grads[k, 0]
+                s1 += grads[k, 1]
+                s2 += grads[k, 2]
+                s3 += grads[k, 3]
+                s4 += grads[k, 4]
+                s5 += grads[k, 5]
+                s6 += grads[k, 6]
+                s7 += grads[k, 7]
+                s8 += grads[k, 8]
+                s9 += grads[k, 9]
+            v_means2d[g, 0] = s0
+            v_means2d[g, 1] = s1
+            v_conics[g, 0] = s2
+            v_conics[g, 1] = s3
+            v_conics[g, 2] = s4
+            v_opac[g] = s5
+            v_colors[g, 0] = s6
+            v_colors[g, 1] = s7
+            v_colors[g, 2] = s8
+            v_depths[g] = s9
 
 
 # project_backward's local scratch: PB_BLK entries per field

@@ -227,6 +227,29 @@ def test_tile_strands_cover_every_tile_once_and_balance_the_work():
     assert max(loads) < 0.55 * work.sum() < max(halves)
 
 
+def test_instance_bounds_split_the_gaussians_by_work():
+    """sum_instances' strands: contiguous ranges covering every Gaussian once, each with about
+    the same instance rows (+1 per Gaussian) however the rows are spread over the Gaussians."""
+    import numpy as np
+
+    from engine.raster import cpu_numba as K_
+
+    rng = np.random.default_rng(1)
+    ntile = rng.integers(0, 3, 5000)
+    ntile[3000:3500] = rng.integers(20, 60, 500)  # a run of large Gaussians
+    gstart = np.concatenate([[0], np.cumsum(ntile)]).astype(np.int64)
+    work = ntile + 1
+    for nstrands in (1, 2, 3, 7):
+        bounds = K_.instance_bounds(gstart, nstrands)
+        assert bounds[0] == 0 and bounds[-1] == 5000 and np.all(np.diff(bounds) >= 0)
+        loads = np.array([work[bounds[s]:bounds[s + 1]].sum() for s in range(nstrands)])
+        assert loads.max() - loads.min() <= 2 * work.max(), (nstrands, loads)
+    # equal Gaussian counts would not be
+    halves = work[:2500].sum(), work[2500:].sum()
+    assert abs(halves[0] - halves[1]) > 4 * work.max()
+    assert K_.instance_bounds(np.zeros(1, np.int64), 2).tolist() == [0, 0, 0]  # no Gaussians
+
+
 def test_cpu_render_does_not_depend_on_the_thread_count():
     """Tiles go to threads by work (:func:`tile_strands`); which thread renders a tile must
     change nothing, forward or backward."""
