@@ -21,6 +21,12 @@ Gaussian-major order, which ``sum_instances`` sums per Gaussian (contiguous rang
 Gaussians of equal work, contiguous rows, no write conflicts); ``project_backward`` chains them to the 3D
 parameters. Semantics are those of :mod:`engine.raster.reference`.
 
+Why one file for five stages: the kernels share constants (tile size, record fields, the tile
+state's layout) and inline helpers, and a cached Numba kernel freezes the globals and
+inlined functions it uses while the on-disk cache checks only the kernel's own source file.
+Split across files, an edit to a shared constant would leave the other files' cached kernels
+running the old value.
+
 Where the time goes (200k Gaussians at 512x512, 2 threads, wall ms, best of 15 per stage,
 2026-11-23 on the shared 2-core machine, kernel revision 088fb47; later figures in
 docs/benchmarks.md): raster_backward ~32, raster_forward ~14.5,

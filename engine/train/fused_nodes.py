@@ -28,9 +28,13 @@ import torch
 from numba import njit
 
 from .fused import _f32  # float32 C-contiguous NumPy view (no copy for float32 tensors)
-from .fused_reg import EPS  # quat_normalize's threshold
 
 _JIT = dict(cache=True, nogil=True, fastmath=False, error_model="numpy")
+# quat_normalize's threshold, the same as fused_reg.EPS (a test ties the copies together).
+# Not imported from there: a cached kernel freezes the globals it reads, and Numba's cache
+# checks only the kernel's own source file, so an edit to fused_reg.py would leave this
+# module's cached kernels with the old value.
+EPS = 1e-12
 
 
 @njit(inline="always", **_JIT)

@@ -79,3 +79,15 @@ def test_trainer_step_is_the_same_fused_or_not(tmp_path, monkeypatch):
         assert m1[name] == pytest.approx(m0[name], rel=1e-5), name
     assert float(gp0.abs().sum()) > 0
     assert _rel(gp1, gp0) <= 1e-5 and _rel(gq1, gq0) <= 1e-5
+
+
+def test_quaternion_thresholds_agree():
+    """fused_nodes keeps its own copy of quat_normalize's threshold (a cached Numba kernel
+    must not read another file's globals: the cache would not notice an edit there)."""
+    import inspect
+
+    from engine.geometry.quaternion import quat_normalize
+    from engine.train import fused_nodes, fused_reg
+
+    eps = inspect.signature(quat_normalize).parameters["eps"].default
+    assert fused_nodes.EPS == fused_reg.EPS == eps
