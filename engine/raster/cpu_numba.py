@@ -18,8 +18,8 @@ Pipeline (forward)::
 Backward mirrors it: ``raster_backward`` walks each tile's list in reverse (as in 3DGS),
 recovering the transmittance by division, and writes per-instance gradients in
 Gaussian-major order, which ``sum_instances`` sums per Gaussian (contiguous ranges of
-Gaussians of equal work, contiguous rows, no write conflicts); ``project_backward`` chains them to the 3D
-parameters. Semantics are those of :mod:`engine.raster.reference`.
+Gaussians of equal work, contiguous rows, no write conflicts); ``project_backward`` chains
+them to the 3D parameters. Semantics are those of :mod:`engine.raster.reference`.
 
 Why one file for five stages: the kernels share constants (tile size, record fields, the tile
 state's layout) and inline helpers, and a cached Numba kernel freezes the globals and

@@ -18,7 +18,8 @@ The blend weights and the binding carry no gradient (they are buffers). Everythi
 float64 inside the kernels; tensors in and out are float32 on the CPU (read and written
 in place, no conversion copies). The per-Gaussian passes run in parallel (blocks of rows
 dealt to one strand per thread, :data:`ROW_BLOCK`; each Gaussian writes only its own rows);
-only the scatter to the nodes is serial. The torch implementation stays the reference; ``tests/engine/test_train.py`` compares both.
+only the scatter to the nodes is serial. The torch implementation stays the reference;
+``tests/engine/test_train.py`` compares both.
 """
 
 from __future__ import annotations
@@ -63,9 +64,9 @@ def _resting(node_rest, idx, g):
 @njit(parallel=True, **_JIT)
 def _forward(dqn, idx, w, x, q, normalize, node_rest, out_x, out_q, blend, sgn, rest, nstrands):
     """Per Gaussian (rows dealt to ``nstrands`` strands, :data:`ROW_BLOCK`; each writes only
-    its own rows). ``x [G, 3]``, ``q [G, 4]``, ``w [G, K]`` float32 read as float64; ``q`` normalised here when ``normalize``. A Gaussian
-    whose nodes are all at rest (``node_rest``) takes the identity as its blend (``rest [G]``
-    notes it for the backward)."""
+    its own rows). ``x [G, 3]``, ``q [G, 4]``, ``w [G, K]`` float32 read as float64; ``q``
+    normalised here when ``normalize``. A Gaussian whose nodes are all at rest
+    (``node_rest``) takes the identity as its blend (``rest [G]`` notes it for the backward)."""
     G, K = idx.shape
     nblk = (G + ROW_BLOCK - 1) // ROW_BLOCK
     for strand in prange(nstrands):
@@ -170,9 +171,10 @@ def _resting_backward(q, g, normalize, gxo, gqo, g_x, g_q):
 
 @njit(parallel=True, **_JIT)
 def _backward(dqn, idx, w, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x, g_q, nstrands):
-    """Per Gaussian (strands of row blocks as in :func:`_forward`): gradients to ``x``, ``q`` (through the normalisation when
-    ``normalize``) and to the blended DQ, ``gbs [G, 8]``; :func:`_scatter_nodes` then sums
-    those into the node DQs serially. Resting rows (``rest [G]``) take the short path."""
+    """Per Gaussian (strands of row blocks as in :func:`_forward`): gradients to ``x``, ``q``
+    (through the normalisation when ``normalize``) and to the blended DQ, ``gbs [G, 8]``;
+    :func:`_scatter_nodes` then sums those into the node DQs serially. Resting rows
+    (``rest [G]``) take the short path."""
     G, K = idx.shape
     nblk = (G + ROW_BLOCK - 1) // ROW_BLOCK
     for strand in prange(nstrands):
@@ -204,9 +206,12 @@ def _backward(dqn, idx, w, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x
                 G10, G11, G12 = gy * px, gy * py, gy * pz
                 G20, G21, G22 = gz * px, gz * py, gz * pz
                 grw = 2 * (-rz * G01 + ry * G02 + rz * G10 - rx * G12 - ry * G20 + rx * G21)
-                grx = 2 * (ry * G01 + rz * G02 + ry * G10 - 2 * rx * G11 - rw * G12 + rz * G20 + rw * G21 - 2 * rx * G22)
-                gry = 2 * (-2 * ry * G00 + rx * G01 + rw * G02 + rx * G10 + rz * G12 - rw * G20 + rz * G21 - 2 * ry * G22)
-                grz = 2 * (-2 * rz * G00 - rw * G01 + rx * G02 + rw * G10 - 2 * rz * G11 + ry * G12 + rx * G20 + ry * G21)
+                grx = 2 * (ry * G01 + rz * G02 + ry * G10 - 2 * rx * G11 - rw * G12 + rz * G20 + rw * G21
+                           - 2 * rx * G22)
+                gry = 2 * (-2 * ry * G00 + rx * G01 + rw * G02 + rx * G10 + rz * G12 - rw * G20 + rz * G21
+                           - 2 * ry * G22)
+                grz = 2 * (-2 * rz * G00 - rw * G01 + rx * G02 + rw * G10 - 2 * rz * G11 + ry * G12 + rx * G20
+                           + ry * G21)
                 # --- translation t = vec(P), P = 2 qd ⊗ c, c = conj(qr); g_P = (0, g)
                 # g_qd = 2 g_P ⊗ conj(c) = 2 g_P ⊗ qr
                 ew, ex, ey, ez = 0.0, gx, gy, gz
@@ -229,7 +234,8 @@ def _backward(dqn, idx, w, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x
                 ow, ox, oy, oz, on = _rotated(rw, rx, ry, rz, q, g, normalize)
                 if on > 1e-12:
                     uw, ux, uy, uz = ow / on, ox / on, oy / on, oz / on
-                    hw, hx, hy, hz = np.float64(gqo[g, 0]), np.float64(gqo[g, 1]), np.float64(gqo[g, 2]), np.float64(gqo[g, 3])
+                    hw, hx = np.float64(gqo[g, 0]), np.float64(gqo[g, 1])
+                    hy, hz = np.float64(gqo[g, 2]), np.float64(gqo[g, 3])
                     d = uw * hw + ux * hx + uy * hy + uz * hz
                     hw, hx, hy, hz = (hw - uw * d) / on, (hx - ux * d) / on, (hy - uy * d) / on, (hz - uz * d) / on
                     # g_qr += h ⊗ conj(a)
