@@ -6,6 +6,7 @@ Examples::
     python -m engine.bench train --steps 100 --repeats 3 --json
     python -m engine.bench train --clip data/demo_clip  # a real clip through the pipeline front end
     python -m engine.bench train --device cuda --gaussians 200000 --width 480   # on a GPU
+    python -m engine.bench train --repeats 8 --baseline ../base   # paired against another tree
 
 What is measured
 ----------------
@@ -39,6 +40,13 @@ into ``bwd_raster`` (the CPU rasteriser's project + rasterise backward), ``bwd_d
 (frame sampling, LR schedule, zero_grad, logging: the step's wall time minus the phases),
 the same phases' process CPU ms per step as ``cpu_<phase>``, plus ``load_1m``
 (``/proc/loadavg`` at the end of the row) to read figures taken on a shared machine.
+
+``--baseline DIR`` times another tree of the project (a ``git worktree`` or an export of its
+``engine/``) with the same interpreter: each repeat is a pair of rows, one per tree (tagged
+``tree`` = ``head`` / ``baseline`` and ``pair``), the order alternating from pair to pair, and a
+last row summarises them (``its_per_s_median`` of each, ``step_ratio_median`` / ``_min`` /
+``_max`` of this tree's step time over the baseline's, pair by pair): on a machine whose speed
+drifts between minutes, only rows taken side by side compare.
 
 Scene (default, built in seconds and deterministic under ``--seed``): a textured wall that
 fills the view plus a translating, rotating blob, rendered with the CPU rasteriser into
@@ -83,6 +91,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"),
                         help="training device (default cpu; cuda uses the gsplat backend when it imports)")
     parser.add_argument("--work", help="folder for the --clip priors cache (default: <tmp>/motion_splats_bench/train)")
+    parser.add_argument("--baseline", metavar="DIR",
+                        help="another tree of this project (e.g. `git worktree add DIR REV`) to time against: each "
+                             "repeat runs a row here and a row there, in alternating order, then a summary row of "
+                             "the paired step-time ratios")
     parser.add_argument("--worker", help=__import__("argparse").SUPPRESS)  # internal: run one row in-process
 
 
@@ -341,6 +353,34 @@ def _worker(spec: dict) -> dict:
             "load_1m": _load_1m(), **machine_description()}
 
 
+def paired_summary(rows: list[dict]) -> dict:
+    """The summary row of a ``--baseline`` run: medians of both trees' ``its_per_s`` and of
+    the per-pair step-time ratio (this tree / baseline), from ``rows`` tagged ``tree`` and
+    ``pair``. Pairs are compared, not the pooled rows, because a shared machine's speed drifts
+    between minutes by more than most changes are worth."""
+    from statistics import median
+
+    head = {r["pair"]: r for r in rows if r.get("tree") == "head"}
+    base = {r["pair"]: r for r in rows if r.get("tree") == "baseline"}
+    pairs = sorted(set(head) & set(base))
+    if not pairs:
+        raise ValueError("no complete pair of rows to summarise")
+    ratios = [head[i]["ms_step"] / base[i]["ms_step"] for i in pairs]
+    return {"summary": "paired", "pairs": len(pairs),
+            "its_per_s_median": round(median(head[i]["its_per_s"] for i in pairs), 3),
+            "baseline_its_per_s_median": round(median(base[i]["its_per_s"] for i in pairs), 3),
+            "step_ratio_median": round(median(ratios), 4), "step_ratio_min": round(min(ratios), 4),
+            "step_ratio_max": round(max(ratios), 4)}
+
+
+def _baseline_tree(path: str) -> Path:
+    tree = Path(path).expanduser().resolve()
+    if not (tree / "engine" / "bench" / "train.py").is_file():
+        raise SystemExit(f"--baseline {path}: no engine/bench/train.py there; give a tree of this project, e.g. "
+                         f"`git worktree add {path} REV` or `mkdir {path} && git archive REV engine | tar -x -C {path}`")
+    return tree
+
+
 def run(args) -> list[dict]:
     spec = {"clip": args.clip, "width": args.width, "gaussians": args.gaussians, "nodes": args.nodes,
             "frames": args.frames, "steps": args.steps, "warmup": args.warmup, "threads": args.threads,
@@ -350,17 +390,28 @@ def run(args) -> list[dict]:
     work = Path(args.work) if args.work else Path(tempfile.gettempdir()) / "motion_splats_bench" / "train"
     spec["work"] = str(work)
     repo = Path(__file__).resolve().parents[2]
+    trees = [("head", repo)]
+    if getattr(args, "baseline", None):
+        trees.append(("baseline", _baseline_tree(args.baseline)))
     env = dict(os.environ)
     env.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # what `python -m engine` sets (engine/__main__.py)
     rows = []
-    for _ in range(args.repeats):
-        cmd = [sys.executable, "-m", "engine.bench", "train", "--json", "--worker", json.dumps(spec)]
-        proc = subprocess.run(cmd, cwd=repo, env=env, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise RuntimeError(f"train bench worker failed ({proc.returncode}): {proc.stderr[-3000:]}")
-        line = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")][-1]
-        row = json.loads(line)
-        print(json.dumps({"progress": {k: row.get(k) for k in ("its_per_s", "ms_step", "cpu_ms_step", "load_1m")}}),
-              file=sys.stderr, flush=True)
-        rows.append(row)
+    for i in range(args.repeats):
+        # alternate which tree goes first, so a drift within a pair does not favour one
+        for name, tree in (trees if i % 2 == 0 else trees[::-1]):
+            # the same interpreter; `-m` imports `engine` from the tree it runs in
+            cmd = [sys.executable, "-m", "engine.bench", "train", "--json", "--worker", json.dumps(spec)]
+            proc = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise RuntimeError(f"train bench worker failed in {tree} ({proc.returncode}): {proc.stderr[-3000:]}")
+            line = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")][-1]
+            row = json.loads(line)
+            if len(trees) > 1:
+                row = {"tree": name, "pair": i + 1, **row}
+            print(json.dumps({"progress": {k: row.get(k) for k in ("tree", "its_per_s", "ms_step", "cpu_ms_step",
+                                                                     "load_1m") if k in row}}),
+                  file=sys.stderr, flush=True)
+            rows.append(row)
+    if len(trees) > 1:
+        rows.append(paired_summary(rows))
     return rows

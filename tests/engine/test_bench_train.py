@@ -77,3 +77,45 @@ def test_bench_train_figures_are_what_the_trainer_did(monkeypatch):
     # the timed window neither densifies nor prunes: the counts are the model's all along
     assert (row["gaussians"], row["nodes"]) == timed["counts"] == timed["counts_after"], (row, timed)
     assert row["nodes"] == 40 and 0 < row["gaussians"] <= 1500
+
+
+def test_paired_summary_compares_rows_pair_by_pair():
+    """--baseline's summary row: each tree's median it/s and the per-pair step-time ratios
+    (this tree / baseline), an unmatched row left out."""
+    from engine.bench.train import paired_summary
+
+    rows = [{"tree": "head", "pair": 1, "its_per_s": 20.0, "ms_step": 50.0},
+            {"tree": "baseline", "pair": 1, "its_per_s": 10.0, "ms_step": 100.0},
+            {"tree": "baseline", "pair": 2, "its_per_s": 8.0, "ms_step": 125.0},  # a slower minute
+            {"tree": "head", "pair": 2, "its_per_s": 10.0, "ms_step": 100.0},
+            {"tree": "head", "pair": 3, "its_per_s": 99.0, "ms_step": 1.0}]  # its baseline row missing
+    s = paired_summary(rows)
+    assert s["summary"] == "paired" and s["pairs"] == 2
+    assert s["its_per_s_median"] == 15.0 and s["baseline_its_per_s_median"] == 9.0
+    assert (s["step_ratio_min"], s["step_ratio_median"], s["step_ratio_max"]) == (0.5, 0.65, 0.8)
+    with pytest.raises(ValueError):
+        paired_summary(rows[:1])
+
+
+def test_bench_train_baseline_must_be_a_tree_of_the_project(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "engine.bench", "train", "--baseline", str(tmp_path)], cwd=REPO,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and str(tmp_path) in r.stderr and "git worktree add" in r.stderr
+    assert r.stdout == ""
+
+
+def test_bench_train_against_a_baseline_tree():
+    """Pairs of rows, one per tree, the order alternating, then the summary row (the baseline
+    here is this same tree: any tree of the project will do)."""
+    r = subprocess.run([sys.executable, "-m", "engine.bench", "train", "--width", "64", "--gaussians", "1500",
+                        "--nodes", "40", "--frames", "12", "--steps", "3", "--warmup", "1", "--repeats", "2",
+                        "--baseline", str(REPO), "--json"], cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = [json.loads(line) for line in r.stdout.splitlines() if line.strip()]
+    assert [(row.get("tree"), row.get("pair")) for row in rows[:4]] == [
+        ("head", 1), ("baseline", 1), ("baseline", 2), ("head", 2)]
+    for row in rows[:4]:
+        assert row["its_per_s"] > 0 and row["steps"] == 3
+    summary = rows[4]
+    assert summary["summary"] == "paired" and summary["pairs"] == 2 and len(rows) == 5
+    assert summary["step_ratio_min"] <= summary["step_ratio_median"] <= summary["step_ratio_max"]
