@@ -100,9 +100,8 @@ def _forward(dqn, idx, w, x, q, normalize, node_rest, out_x, out_q, blend, sgn, 
 
 
 @njit(inline="always", **_JIT)
-def _rotated(rw, rx, ry, rz, q, g, normalize):
-    """``r = q_r ⊗ a`` for the unit canonical rotation ``a`` of row ``g``, and ``|r|``."""
-    aw, ax, ay, az = _unit(q, g, normalize)
+def _rotated(rw, rx, ry, rz, aw, ax, ay, az):
+    """``r = q_r ⊗ a`` for the unit canonical rotation ``a`` (:func:`_unit`), and ``|r|``."""
     ow = rw * aw - rx * ax - ry * ay - rz * az
     ox = rw * ax + rx * aw + ry * az - rz * ay
     oy = rw * ay - rx * az + ry * aw + rz * ax
@@ -129,7 +128,8 @@ def _apply(b, x, q, g, normalize, out_x, out_q):
     out_x[g, 0] = (1 - 2 * (yy + zz)) * px + 2 * (xy - wz) * py + 2 * (xz + wy) * pz + tx
     out_x[g, 1] = 2 * (xy + wz) * px + (1 - 2 * (xx + zz)) * py + 2 * (yz - wx) * pz + ty
     out_x[g, 2] = 2 * (xz - wy) * px + 2 * (yz + wx) * py + (1 - 2 * (xx + yy)) * pz + tz
-    ow, ox, oy, oz, on = _rotated(rw, rx, ry, rz, q, g, normalize)
+    aw, ax, ay, az = _unit(q, g, normalize)
+    ow, ox, oy, oz, on = _rotated(rw, rx, ry, rz, aw, ax, ay, az)
     if on > 1e-12:
         out_q[g, 0], out_q[g, 1], out_q[g, 2], out_q[g, 3] = ow / on, ox / on, oy / on, oz / on
     else:
@@ -231,7 +231,7 @@ def _backward(dqn, idx, w, x, q, normalize, blend, sgn, rest, gxo, gqo, gbs, g_x
                 grz -= cz
                 # --- rotations: o = r/|r|, r = qr ⊗ a
                 aw, ax, ay, az = _unit(q, g, normalize)
-                ow, ox, oy, oz, on = _rotated(rw, rx, ry, rz, q, g, normalize)
+                ow, ox, oy, oz, on = _rotated(rw, rx, ry, rz, aw, ax, ay, az)
                 if on > 1e-12:
                     uw, ux, uy, uz = ow / on, ox / on, oy / on, oz / on
                     hw, hx = np.float64(gqo[g, 0]), np.float64(gqo[g, 1])
