@@ -408,9 +408,8 @@ def run(args) -> list[dict]:
             row = json.loads(line)
             if len(trees) > 1:
                 row = {"tree": name, "pair": i + 1, **row}
-            print(json.dumps({"progress": {k: row.get(k) for k in ("tree", "its_per_s", "ms_step", "cpu_ms_step",
-                                                                     "load_1m") if k in row}}),
-                  file=sys.stderr, flush=True)
+            shown = ("tree",) * (len(trees) > 1) + ("its_per_s", "ms_step", "cpu_ms_step", "load_1m")
+            print(json.dumps({"progress": {k: row.get(k) for k in shown}}), file=sys.stderr, flush=True)
             rows.append(row)
     if len(trees) > 1:
         rows.append(paired_summary(rows))
