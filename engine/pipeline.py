@@ -175,24 +175,12 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     depth = np.zeros((f, h, w), np.float32)
     dynamic = np.zeros((f, h, w), np.float32)
     d_source = depth_source(prior_config or PriorConfig())
-    train_depth = pr.depth
+    train_depth, moving_record = pr.depth, {}
     if d_source == "weight-free":
-        # the weight-free depth of a moving object is its surroundings' and changes as the
-        # object crosses them: give each moving track one depth (engine/priors/dynamic_depth.py)
-        from .priors.dynamic_depth import ground_contact_depth, track_consistent_depth
+        from .priors.dynamic_depth import moving_object_depth
 
-        mode = (prior_config or PriorConfig()).moving_depth
-        if mode not in ("contact", "track"):
-            raise ValueError(f"PriorConfig.moving_depth must be 'contact' or 'track', not {mode!r}")
-        contact = None
-        if mode == "contact":
-            contact, cst = ground_contact_depth(pr.depth, pr.dynamic)
-            reporter.log(f"moving objects: ground contact found for {cst['with_contact']} of {cst['blobs']} "
-                         "moving blobs")
-        train_depth, st = track_consistent_depth(pr.depth, pr.dynamic, pr.tracks.xy, pr.tracks.visible,
-                                                 contact=contact, percentile=10.0 if mode == "contact" else 50.0)
-        reporter.log(f"moving objects: one depth per moving track ({st['moving_tracks']} tracks, "
-                     f"{st['painted_px']} pixels in {st['frames']} frames)")
+        train_depth, moving_record = moving_object_depth(pr, prior_config or PriorConfig(), K[order], w2c[order],
+                                                         reporter)
     depth[order] = train_depth
     dynamic[order] = pr.dynamic
     xy = np.zeros((pr.tracks.xy.shape[0], f, 2), np.float32)
@@ -203,7 +191,7 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     priors = _FramePriors(tokens=pr.tokens, tracks=full, depth=depth, dynamic=dynamic, train_order=order,
                           recomputed=list(getattr(pr, "recomputed", [])),
                           depth_source=d_source,
-                          sources=_prior_sources(prior_config or PriorConfig()))
+                          sources=_prior_sources(prior_config or PriorConfig(), moving_record))
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
                         frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
                         extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""),
@@ -275,11 +263,15 @@ class _FramePriors:
     sources: dict = dataclasses.field(default_factory=dict)  # scene.json "priors": model + sha256 per prior
 
 
-def _prior_sources(prior_config) -> dict:
-    """Which model (name + SHA-256) or weight-free backend produces each prior (``engine.models``)."""
+def _prior_sources(prior_config, moving_record: dict | None = None) -> dict:
+    """Which model (name + SHA-256) or weight-free backend produces each prior (``engine.models``);
+    ``moving_record`` (what gave moving objects their weight-free depth) joins ``depth``'s."""
     from .models import describe_priors
 
-    return describe_priors(prior_config)
+    out = describe_priors(prior_config)
+    if moving_record and "depth" in out:
+        out["depth"] = {**out["depth"], **moving_record}
+    return out
 
 
 def depth_source(prior_config) -> str:

@@ -60,6 +60,10 @@ def add_clip_options(parser):
                      help="motion mask: things that rest at some times and move at others (a cup set down and "
                           "picked up again) are moving content in every frame (default auto: when the camera does "
                           "not translate; off: only where they move)")
+    pri.add_argument("--hinges", choices=("auto", "off"),
+                     help="weight-free depth: a moving object that turns about a static point (a pendulum, an arm "
+                          "swung from a still body) takes that point's depth, found by parallax (default auto; off: "
+                          "ground contact and occlusion order only)")
     pri.add_argument("--no-models", action="store_true",
                      help="ignore installed models (python -m engine models): weight-free backends for every "
                           "prior not given above")
@@ -118,6 +122,8 @@ def prior_config_from_args(args):
     cfg.depth_output = getattr(args, "depth_output", None)
     if getattr(args, "resting_objects", None):
         cfg.resting_objects = args.resting_objects
+    if getattr(args, "hinges", None):
+        cfg.hinges = args.hinges
     cfg.depth_path, cfg.mask_path, cfg.tracks_path = args.depth_path, args.mask_path, args.tracks_path
     given = manifest_priors(args.clip)  # a clip manifest's own precomputed priors, unless an option overrides
     cfg.depth_path = cfg.depth_path or given.get("depth")

@@ -72,6 +72,9 @@ class PriorConfig:
     # one depth per track) | 'track' (one depth per track from the prior alone); see
     # engine/priors/dynamic_depth.py
     moving_depth: str = "contact"
+    # ... and, with 'contact', a moving object that turns about a static point takes that
+    # point's depth ('auto') or not ('off'); engine/priors/hinge.py
+    hinges: str = "auto"
     # weight-free depth: a moving pixel is no nearer than 1/ratio of the static surface
     # behind it (engine.priors.depth.merge_moving_depth)
     moving_depth_ratio: float = 4.0

@@ -14,7 +14,9 @@ prior along the track -- and paints each moving pixel of each frame with the dep
 nearest moving track visible there. Depth along a track is then constant, so lifted
 tracks move only across the rays (the motion the image shows), and candidates, nodes,
 tracks and Gaussians seeded from any frame agree. Used only with the weight-free depth;
-a depth model or file sees the objects and is kept as it is.
+a depth model or file sees the objects and is kept as it is. :func:`moving_object_depth`
+runs the stages in order for ``engine.pipeline.prepare``: ground contact, hinges
+(:mod:`engine.priors.hinge`), one depth per track.
 """
 
 from __future__ import annotations
@@ -173,3 +175,50 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
         stats["painted_px"] += int(near.sum())
         stats["frames"] += 1
     return out, stats
+
+
+def moving_object_depth(pr, prior_config, K, w2c, reporter) -> tuple[np.ndarray, dict]:
+    """The weight-free depth with a depth of their own for moving objects, and what gave it.
+
+    The weight-free depth of a moving object is its surroundings' and changes as the object
+    crosses them: each moving track gets one depth (:func:`track_consistent_depth`), from
+    ground contact and occlusion order ('contact', :func:`ground_contact_depth`) and, for an
+    object that turns about a static point, that point's depth where nearer
+    (:mod:`engine.priors.hinge`). ``pr`` : the clip's :class:`~engine.priors.cache.Priors`;
+    ``prior_config`` : its ``PriorConfig``; ``K [F,3,3]``, ``w2c [F,4,4]`` : the cameras of
+    its frames; ``reporter`` : what logs the stages. Returns ``(depth [F,H,W], record)``,
+    ``record`` for scene.json's ``priors.depth``.
+    """
+    mode = prior_config.moving_depth
+    if mode not in ("contact", "track"):
+        raise ValueError(f"PriorConfig.moving_depth must be 'contact' or 'track', not {mode!r}")
+    if prior_config.hinges not in ("auto", "off"):
+        raise ValueError(f"PriorConfig.hinges must be 'auto' or 'off', not {prior_config.hinges!r}")
+    record = {"moving_objects": mode}
+    contact = None
+    if mode == "contact":
+        contact, cst = ground_contact_depth(pr.depth, pr.dynamic)
+        reporter.log(f"moving objects: ground contact found for {cst['with_contact']} of {cst['blobs']} "
+                     "moving blobs")
+        if prior_config.hinges == "auto":
+            contact, record["hinges"] = _with_hinges(contact, pr.depth, pr.dynamic, K, w2c, reporter)
+    depth, st = track_consistent_depth(pr.depth, pr.dynamic, pr.tracks.xy, pr.tracks.visible,
+                                       contact=contact, percentile=10.0 if mode == "contact" else 50.0)
+    reporter.log(f"moving objects: one depth per moving track ({st['moving_tracks']} tracks, "
+                 f"{st['painted_px']} pixels in {st['frames']} frames)")
+    return depth, record
+
+
+def _with_hinges(contact, depth, dynamic, K, w2c, reporter) -> tuple[np.ndarray, int]:
+    """``(contact', hinges found)``: ``contact [F, H, W]`` with the depth of the hinges found
+    (engine/priors/hinge.py) where nearer: a moving object that turns about a static point is
+    about as far as that point."""
+    from .hinge import find_hinges, hinge_depth
+
+    hinges = find_hinges(depth, dynamic, K, w2c)
+    if not len(hinges.points):
+        return contact, 0
+    hd, st = hinge_depth(hinges, dynamic, K, w2c, depth=depth)
+    reporter.log(f"moving objects: {st['hinges']} hinge(s) (a static point a moving object turns about) give "
+                 f"their depth to {st['painted_px']} pixels in {st['frames']} frames")
+    return np.fmin(contact, hd), st["hinges"]
