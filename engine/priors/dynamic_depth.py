@@ -213,8 +213,13 @@ def _with_hinges(contact, depth, dynamic, K, w2c, reporter) -> tuple[np.ndarray,
     """``(contact', hinges found)``: ``contact [F, H, W]`` with the depth of the hinges found
     (engine/priors/hinge.py) where nearer: a moving object that turns about a static point is
     about as far as that point."""
+    import torch
+
+    from ..geometry.camera import camera_translates, scene_extent
     from .hinge import find_hinges, hinge_depth
 
+    if not camera_translates(torch.as_tensor(np.asarray(w2c), dtype=torch.float64), scene_extent(w2c, depth)):
+        return contact, 0  # no parallax, no hinge: skip a search (~0.4 s per 10 frames) that finds none
     hinges = find_hinges(depth, dynamic, K, w2c)
     if not len(hinges.points):
         return contact, 0

@@ -128,3 +128,19 @@ def test_a_prior_that_already_sees_the_object_keeps_it():
     assert stats["painted_px"] == 0 and not np.isfinite(painted).any()
     painted, stats = hinge_depth(hinges, dynamic, K, w2c, depth=wall)
     assert stats["painted_px"] > 0
+
+
+def test_the_stage_skips_the_search_for_a_camera_that_does_not_translate():
+    from types import SimpleNamespace
+
+    from engine.priors import PriorConfig
+    from engine.priors.dynamic_depth import moving_object_depth
+    from engine.protocol import Reporter
+
+    f = 12
+    K, w2c = _cameras(f, travel=0.0)
+    dynamic = _mask(K, w2c, _rod(f, np.array([0.0, -0.6, 4.0])))
+    tracks = SimpleNamespace(xy=np.zeros((0, f, 2), np.float32), visible=np.zeros((0, f), bool))
+    pr = SimpleNamespace(depth=np.full((f, H, W), WALL, np.float32), dynamic=dynamic, tracks=tracks)
+    _, record = moving_object_depth(pr, PriorConfig(), K, w2c, Reporter(quiet=True))
+    assert record == {"moving_objects": "contact", "hinges": 0}
