@@ -212,7 +212,11 @@ def _prior_rows(priors: dict) -> list[list]:
     rows = []
     for role, src in priors.items():
         model = src.get("model") or (src.get("file") if src.get("backend") == "file" else "weight-free")
-        rows.append([role, src.get("backend"), model, src.get("sha256") or "", src.get("license") or ""])
+        backend = src.get("backend")
+        if src.get("moving_objects"):  # the weight-free depth's own depth for moving objects (pipeline.prepare)
+            hinges = f", {src['hinges']} hinge(s)" if "hinges" in src else ""
+            backend = f"{backend}; moving objects: {src['moving_objects']}{hinges}"
+        rows.append([role, backend, model, src.get("sha256") or "", src.get("license") or ""])
     return rows
 
 

@@ -114,3 +114,12 @@ def test_report_command(trained, tmp_path):
     r = _run(["-m", "engine", "report", str(out), "--out", str(target), "--jsonl"])
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     assert target.is_file() and (target.parent / "nodes_overlay.png").is_file()
+
+
+def test_report_names_what_gave_moving_objects_their_depth():
+    from engine.report import _prior_rows
+
+    rows = _prior_rows({"depth": {"backend": "sparse", "moving_objects": "contact", "hinges": 1},
+                        "flow": {"backend": "dis"}})
+    assert rows[0][:3] == ["depth", "sparse; moving objects: contact, 1 hinge(s)", "weight-free"]
+    assert rows[1][:3] == ["flow", "dis", "weight-free"]
