@@ -88,7 +88,7 @@ def find_hinges(depth: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c: np.n
                 accept_range: tuple = (0.15, 1.0), min_hit: float = 0.95, min_seen: float = 0.8, band: float = 1.4,
                 drop: float = 0.7, front: float = 1.0, dilate_px: int = 2, merge: float = 0.05, min_refs: float = 0.6,
                 max_share: float = 0.5, min_support: float = 0.5,
-                chunk: int = 128) -> Hinges:
+                max_elements: int = 2_000_000) -> Hinges:
     """Static 3D points that every frame sees on its moving pixels.
 
     Parameters
@@ -115,6 +115,8 @@ def find_hinges(depth: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c: np.n
         pixels at some depth (a blob that does so whole is an object whose motion mimics a
         static one, not one turning about a point).
     min_support : hinges with fewer than this share of the strongest one's candidates are dropped.
+    max_elements : candidates are scored in chunks of at most this many (frame, depth, candidate)
+        projections (~100 bytes each at the peak: a long clip does not grow the memory).
 
     Returns
     -------
@@ -139,7 +141,8 @@ def find_hinges(depth: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c: np.n
     mov_t, dep_t = torch.as_tensor(on_moving), torch.as_tensor(np.nan_to_num(depth), dtype=torch.float64)
     s_t = torch.as_tensor(scales, dtype=torch.float64)
     hit, seen, ahead, pts = [], [], [], []
-    for a in range(0, len(uv), chunk):  # chunks of candidates bound the [F, S, N] arrays
+    chunk = max(1, int(max_elements) // (f * num_scales))
+    for a in range(0, len(uv), chunk):  # chunks of candidates bound the [F, S, n] arrays
         b = slice(a, a + chunk)
         fk = torch.as_tensor(fr[b])
         z = torch.as_tensor(d0[b], dtype=torch.float64)[None] * s_t[:, None]  # [S, n]
