@@ -87,7 +87,7 @@ def find_hinges(depth: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c: np.n
                 ref_frames: int = 6, max_per_frame: int = 400, scale_range: tuple = (0.1, 1.5), num_scales: int = 48,
                 accept_range: tuple = (0.15, 1.0), min_hit: float = 0.95, min_seen: float = 0.8, band: float = 1.4,
                 drop: float = 0.7, front: float = 1.0, dilate_px: int = 2, merge: float = 0.05, min_refs: float = 0.6,
-                max_share: float = 0.5, min_support: float = 0.5,
+                max_share: float = 0.5, min_support: float = 0.5, min_candidates: int = 20,
                 max_elements: int = 2_000_000) -> Hinges:
     """Static 3D points that every frame sees on its moving pixels.
 
@@ -114,7 +114,8 @@ def find_hinges(depth: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c: np.n
     max_share : ... and when at most this share of their blobs' candidates stay on the moving
         pixels at some depth (a blob that does so whole is an object whose motion mimics a
         static one, not one turning about a point).
-    min_support : hinges with fewer than this share of the strongest one's candidates are dropped.
+    min_support, min_candidates : hinges with fewer than this share of the strongest one's
+        candidates, or fewer than ``min_candidates``, are dropped.
     max_elements : candidates are scored in chunks of at most this many (frame, depth, candidate)
         projections (~100 bytes each at the peak: a long clip does not grow the memory).
 
@@ -196,9 +197,9 @@ def find_hinges(depth: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c: np.n
     if not points:
         return empty
     # weak groups are the fringe of a wide motion mask (a point floating in front of the wall
-    # that the swept object's dilated mask covers from every view): on the generated scenes
-    # they had 5-15 candidates against the pivots' 26-108
-    keep = np.asarray(support) >= min_support * max(support)
+    # that the swept object's dilated mask covers from every view): on the generated scenes and
+    # the demo clip they had 5-15 candidates against the pivots' 26-108
+    keep = np.asarray(support) >= max(min_support * max(support), min_candidates)
     points, support, frames = (list(np.asarray(a)[keep]) for a in (points, support, frames))
     order = np.argsort(-np.asarray(support), kind="stable")
     return Hinges(np.asarray(points, np.float32)[order], np.asarray(support, np.int64)[order],
