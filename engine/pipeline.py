@@ -175,12 +175,13 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     depth = np.zeros((f, h, w), np.float32)
     dynamic = np.zeros((f, h, w), np.float32)
     d_source = depth_source(prior_config or PriorConfig())
+    extent = scene_extent(w2c[train], pr.depth)
     train_depth, moving_record = pr.depth, {}
     if d_source == "weight-free":
         from .priors.dynamic_depth import moving_object_depth
 
         train_depth, moving_record = moving_object_depth(pr, prior_config or PriorConfig(), K[order], w2c[order],
-                                                         reporter)
+                                                         extent, reporter)
     depth[order] = train_depth
     dynamic[order] = pr.dynamic
     xy = np.zeros((pr.tracks.xy.shape[0], f, 2), np.float32)
@@ -194,7 +195,7 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
                           sources=_prior_sources(prior_config or PriorConfig(), moving_record))
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
                         frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
-                        extent=scene_extent(w2c[train], pr.depth), source=str(clip.source or ""),
+                        extent=extent, source=str(clip.source or ""),
                         clip_index=np.asarray(idx, dtype=np.int64), camera_solve=_camera_solve_record(clip),
                         held_out_cameras=held_out_cameras)
 

@@ -177,7 +177,7 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
     return out, stats
 
 
-def moving_object_depth(pr, prior_config, K, w2c, reporter) -> tuple[np.ndarray, dict]:
+def moving_object_depth(pr, prior_config, K, w2c, extent, reporter) -> tuple[np.ndarray, dict]:
     """The weight-free depth with a depth of their own for moving objects, and what gave it.
 
     The weight-free depth of a moving object is its surroundings' and changes as the object
@@ -186,7 +186,8 @@ def moving_object_depth(pr, prior_config, K, w2c, reporter) -> tuple[np.ndarray,
     object that turns about a static point, that point's depth where nearer
     (:mod:`engine.priors.hinge`). ``pr`` : the clip's :class:`~engine.priors.cache.Priors`;
     ``prior_config`` : its ``PriorConfig``; ``K [F,3,3]``, ``w2c [F,4,4]`` : the cameras of
-    its frames; ``reporter`` : what logs the stages. Returns ``(depth [F,H,W], record)``,
+    its frames; ``extent`` : the scene's (:func:`engine.geometry.camera.scene_extent`, which
+    ``prepare`` has already); ``reporter`` : what logs the stages. Returns ``(depth [F,H,W], record)``,
     ``record`` for scene.json's ``priors.depth``.
     """
     mode = prior_config.moving_depth
@@ -201,7 +202,7 @@ def moving_object_depth(pr, prior_config, K, w2c, reporter) -> tuple[np.ndarray,
         reporter.log(f"moving objects: ground contact found for {cst['with_contact']} of {cst['blobs']} "
                      "moving blobs")
         if prior_config.hinges == "auto":
-            contact, record["hinges"] = _with_hinges(contact, pr.depth, pr.dynamic, K, w2c, reporter)
+            contact, record["hinges"] = _with_hinges(contact, pr.depth, pr.dynamic, K, w2c, extent, reporter)
     depth, st = track_consistent_depth(pr.depth, pr.dynamic, pr.tracks.xy, pr.tracks.visible,
                                        contact=contact, percentile=10.0 if mode == "contact" else 50.0)
     reporter.log(f"moving objects: one depth per moving track ({st['moving_tracks']} tracks, "
@@ -209,16 +210,16 @@ def moving_object_depth(pr, prior_config, K, w2c, reporter) -> tuple[np.ndarray,
     return depth, record
 
 
-def _with_hinges(contact, depth, dynamic, K, w2c, reporter) -> tuple[np.ndarray, int]:
+def _with_hinges(contact, depth, dynamic, K, w2c, extent, reporter) -> tuple[np.ndarray, int]:
     """``(contact', hinges found)``: ``contact [F, H, W]`` with the depth of the hinges found
     (engine/priors/hinge.py) where nearer: a moving object that turns about a static point is
     about as far as that point."""
     import torch
 
-    from ..geometry.camera import camera_translates, scene_extent
+    from ..geometry.camera import camera_translates
     from .hinge import find_hinges, hinge_depth
 
-    if not camera_translates(torch.as_tensor(np.asarray(w2c), dtype=torch.float64), scene_extent(w2c, depth)):
+    if not camera_translates(torch.as_tensor(np.asarray(w2c), dtype=torch.float64), extent):
         return contact, 0  # no parallax, no hinge: skip a search (~0.4 s per 10 frames) that finds none
     hinges = find_hinges(depth, dynamic, K, w2c)
     if not len(hinges.points):

@@ -179,7 +179,8 @@ def find_hinges(depth: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c: np.n
     # camera's own motion mimicked, e.g. a car driven beside a tracking camera): no hinge
     # (passing = on its moving pixels in nearly every frame at some depth, narrow band or not)
     passing = (best >= min_hit) & (ahead[k, cols] >= min_hit)
-    accepted = np.bincount(blob[passing], minlength=blob.max() + 1) / np.maximum(np.bincount(blob, minlength=blob.max() + 1), 1)
+    n_blobs = blob.max() + 1
+    accepted = np.bincount(blob[passing], minlength=n_blobs) / np.maximum(np.bincount(blob, minlength=n_blobs), 1)
     cand_z = (d0 * s_best)[ok]
     # greedy grouping: the candidate with most agreeing neighbours seeds a hinge, its group leaves
     d2 = ((cand[:, None] - cand[None]) ** 2).sum(-1)
@@ -192,7 +193,8 @@ def find_hinges(depth: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c: np.n
         group = near[i] & left
         left &= ~group
         refs_hit = len(np.unique(cand_ref[group]))
-        if refs_hit >= max(2, int(np.ceil(min_refs * len(refs)))) and np.median(accepted[cand_blob[group]]) <= max_share:
+        enough_refs = refs_hit >= max(2, int(np.ceil(min_refs * len(refs))))
+        if enough_refs and np.median(accepted[cand_blob[group]]) <= max_share:
             points.append(np.median(cand[group], 0)); support.append(int(group.sum())); frames.append(refs_hit)
     if not points:
         return empty
@@ -237,8 +239,8 @@ def hinge_depth(hinges: Hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndar
     stats = {"hinges": int(len(hinges.points)), "painted_px": 0, "frames": 0}
     if not len(hinges.points):
         return out, stats
-    uv, z = project(torch.as_tensor(K, dtype=torch.float64)[:, None], torch.as_tensor(w2c, dtype=torch.float64)[:, None],
-                    torch.as_tensor(hinges.points, dtype=torch.float64)[None])
+    as64 = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
+    uv, z = project(as64(K)[:, None], as64(w2c)[:, None], as64(hinges.points)[None])
     uv, z = uv.numpy(), z.numpy()  # [F, M, 2], [F, M]
     moving = dynamic >= threshold
     ys, xs = np.mgrid[0:h, 0:w]

@@ -94,6 +94,7 @@ def test_the_weight_free_depth_stage_gives_the_rod_its_pivots_depth():
     from types import SimpleNamespace
 
     from engine.priors import PriorConfig
+    from engine.geometry.camera import scene_extent
     from engine.priors.dynamic_depth import moving_object_depth
     from engine.protocol import Reporter
 
@@ -107,10 +108,12 @@ def test_the_weight_free_depth_stage_gives_the_rod_its_pivots_depth():
     tracks = SimpleNamespace(xy=xy, visible=np.ones(xy.shape[:2], bool))
     pr = SimpleNamespace(depth=np.full((f, H, W), WALL, np.float32), dynamic=dynamic, tracks=tracks)
     on = dynamic >= 0.5
-    with_hinges, record = moving_object_depth(pr, PriorConfig(), K, w2c, Reporter(quiet=True))
+    with_hinges, record = moving_object_depth(pr, PriorConfig(), K, w2c, scene_extent(w2c, pr.depth),
+                                              Reporter(quiet=True))
     assert record["moving_objects"] == "contact" and record["hinges"] >= 1
     assert abs(np.median(with_hinges[on]) - 4.0) < 0.3
-    without, record = moving_object_depth(pr, PriorConfig(hinges="off"), K, w2c, Reporter(quiet=True))
+    without, record = moving_object_depth(pr, PriorConfig(hinges="off"), K, w2c, scene_extent(w2c, pr.depth),
+                                          Reporter(quiet=True))
     assert "hinges" not in record and np.median(without[on]) > 8.0
 
 
@@ -134,6 +137,7 @@ def test_the_stage_skips_the_search_for_a_camera_that_does_not_translate():
     from types import SimpleNamespace
 
     from engine.priors import PriorConfig
+    from engine.geometry.camera import scene_extent
     from engine.priors.dynamic_depth import moving_object_depth
     from engine.protocol import Reporter
 
@@ -142,5 +146,6 @@ def test_the_stage_skips_the_search_for_a_camera_that_does_not_translate():
     dynamic = _mask(K, w2c, _rod(f, np.array([0.0, -0.6, 4.0])))
     tracks = SimpleNamespace(xy=np.zeros((0, f, 2), np.float32), visible=np.zeros((0, f), bool))
     pr = SimpleNamespace(depth=np.full((f, H, W), WALL, np.float32), dynamic=dynamic, tracks=tracks)
-    _, record = moving_object_depth(pr, PriorConfig(), K, w2c, Reporter(quiet=True))
+    _, record = moving_object_depth(pr, PriorConfig(), K, w2c, scene_extent(w2c, pr.depth),
+                                              Reporter(quiet=True))
     assert record == {"moving_objects": "contact", "hinges": 0}
