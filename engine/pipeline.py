@@ -180,15 +180,13 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     if d_source == "weight-free":
         from .priors.dynamic_depth import moving_object_depth
 
-        train_depth, moving_record = moving_object_depth(pr, prior_config or PriorConfig(), K[order], w2c[order],
-                                                         extent, reporter)
+        train_depth, tracks, moving_record = moving_object_depth(pr, prior_config or PriorConfig(), K[order],
+                                                                 w2c[order], extent, reporter)
+    else:
+        tracks = pr.tracks
     depth[order] = train_depth
     dynamic[order] = pr.dynamic
-    xy = np.zeros((pr.tracks.xy.shape[0], f, 2), np.float32)
-    vis = np.zeros((pr.tracks.xy.shape[0], f), bool)
-    xy[:, order] = pr.tracks.xy
-    vis[:, order] = pr.tracks.visible
-    full = dataclasses.replace(pr.tracks, xy=xy, visible=vis) if dataclasses.is_dataclass(pr.tracks) else pr.tracks
+    full = _tracks_over_all_frames(tracks, order, f)
     priors = _FramePriors(tokens=pr.tokens, tracks=full, depth=depth, dynamic=dynamic, train_order=order,
                           recomputed=list(getattr(pr, "recomputed", [])),
                           depth_source=d_source,
@@ -198,6 +196,23 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
                         extent=extent, source=str(clip.source or ""),
                         clip_index=np.asarray(idx, dtype=np.int64), camera_solve=_camera_solve_record(clip),
                         held_out_cameras=held_out_cameras)
+
+
+def _tracks_over_all_frames(tracks, order: np.ndarray, f: int):
+    """``tracks`` of the training frames (in ``order``) laid out over all ``f`` prepared
+    frames: invisible, at (0, 0) and without a depth of their own on the others."""
+    if not dataclasses.is_dataclass(tracks):
+        return tracks
+    p = tracks.xy.shape[0]
+    xy = np.zeros((p, f, 2), np.float32)
+    vis = np.zeros((p, f), bool)
+    xy[:, order] = tracks.xy
+    vis[:, order] = tracks.visible
+    depth = None
+    if getattr(tracks, "depth", None) is not None:
+        depth = np.full((p, f), np.nan, np.float32)
+        depth[:, order] = tracks.depth
+    return dataclasses.replace(tracks, xy=xy, visible=vis, depth=depth)
 
 
 def _camera_solve_record(clip) -> dict | None:
@@ -315,9 +330,11 @@ def initial_nodes(prep: PreparedClip, cfg: TrainConfig) -> B.NodeArrays:
                               seed=cfg.seed, trajectory=trajectory, radius_k=cfg.radius_k,
                               radius_factor=cfg.radius_factor, rotations=cfg.node_rotations)
     tr = prep.priors.tracks
+    own_depth = getattr(tr, "depth", None)
     nodes = initialise_nodes(prep.priors.depth[order], prep.K[order], prep.w2c[order], prep.times[order],
                              prep.priors.tokens.tokens, prep.priors.tokens.patch_centers,
-                             prep.priors.dynamic[order], tr.xy[:, order], tr.visible[:, order], init_cfg)
+                             prep.priors.dynamic[order], tr.xy[:, order], tr.visible[:, order], init_cfg,
+                             tracks_depth=None if own_depth is None else own_depth[:, order])
     return node_arrays_from(nodes)
 
 

@@ -215,6 +215,8 @@ def _prior_rows(priors: dict) -> list[list]:
         backend = src.get("backend")
         if src.get("moving_objects"):  # the weight-free depth's own depth for moving objects (pipeline.prepare)
             hinges = f", {src['hinges']} hinge(s)" if "hinges" in src else ""
+            if src.get("hinge_tracks"):
+                hinges += f" with {src['hinge_tracks']} tracks along their rings"
             backend = f"{backend}; moving objects: {src['moving_objects']}{hinges}"
         rows.append([role, backend, model, src.get("sha256") or "", src.get("license") or ""])
     return rows

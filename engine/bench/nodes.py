@@ -377,7 +377,8 @@ def run_generated(args) -> list[dict]:
         pr, tr = prep.priors, prep.priors.tracks
         inputs = dict(depth=pr.depth[order], K=prep.K[order], w2c=prep.w2c[order], times=prep.times[order],
                       tokens=pr.tokens.tokens, patch_centers=pr.tokens.patch_centers, fg=pr.dynamic[order],
-                      tracks_xy=tr.xy[:, order], tracks_vis=tr.visible[:, order])
+                      tracks_xy=tr.xy[:, order], tracks_vis=tr.visible[:, order],
+                      tracks_depth=None if tr.depth is None else tr.depth[:, order])
         oracle = []
         if getattr(args, "oracle_depth", False):
             inputs["depth"] = gt["depth"]

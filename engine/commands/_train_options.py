@@ -60,10 +60,11 @@ def add_clip_options(parser):
                      help="motion mask: things that rest at some times and move at others (a cup set down and "
                           "picked up again) are moving content in every frame (default auto: when the camera does "
                           "not translate; off: only where they move)")
-    pri.add_argument("--hinges", choices=("auto", "off"),
+    pri.add_argument("--hinges", choices=("auto", "depth", "off"),
                      help="weight-free depth: a moving object that turns about a static point (a pendulum, an arm "
-                          "swung from a still body) takes that point's depth, found by parallax (default auto; off: "
-                          "ground contact and occlusion order only)")
+                          "swung from a still body) takes that point's depth, found by parallax, and long tracks "
+                          "along its rings (default auto; depth: the depth only; off: ground contact and occlusion "
+                          "order only)")
     pri.add_argument("--no-models", action="store_true",
                      help="ignore installed models (python -m engine models): weight-free backends for every "
                           "prior not given above")

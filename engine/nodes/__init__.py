@@ -67,14 +67,15 @@ def _snap_frame(t: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
 
 
 def initialise_nodes(depth, K, w2c, times, tokens, patch_centers, fg, tracks_xy, tracks_vis,
-                     config: NodeInitConfig = NodeInitConfig()) -> NodeSet:
+                     config: NodeInitConfig = NodeInitConfig(), tracks_depth=None) -> NodeSet:
     """Build the initial node set.
 
     Parameters
     ----------
     depth : (F, H, W); K : (F, 3, 3); w2c : (F, 4, 4) OpenCV; times : (F,) engine time.
     tokens : (F, Gh, Gw, D); patch_centers : (Gh, Gw, 2) pixels of the depth image.
-    fg : (F, H, W) dynamic prior; tracks_xy : (P, F, 2); tracks_vis : (P, F).
+    fg : (F, H, W) dynamic prior; tracks_xy : (P, F, 2); tracks_vis : (P, F); tracks_depth : (P, F)
+    a depth the tracks carry themselves (NaN where the depth map decides) or None.
     config : NodeInitConfig (``config.mani.budget`` is the node budget for every method).
 
     Returns
@@ -87,7 +88,8 @@ def initialise_nodes(depth, K, w2c, times, tokens, patch_centers, fg, tracks_xy,
     cand = build_candidates(depth, K, w2c, times, torch.as_tensor(tokens).float(),
                             torch.as_tensor(patch_centers).float(), torch.as_tensor(fg).float(), keyframes, config.dynamic_density)
     tracks3d = lift_tracks(torch.as_tensor(tracks_xy).float(), torch.as_tensor(tracks_vis), depth, K, w2c,
-                           config.vis_threshold, config.edge_tolerance)
+                           config.vis_threshold, config.edge_tolerance,
+                           None if tracks_depth is None else torch.as_tensor(tracks_depth).float())
     if config.clean_tracks:
         tracks3d, _ = clean_tracks3d(tracks3d, torch.as_tensor(tracks_xy).float(), K, w2c, torch.as_tensor(fg).float(),
                                      config.jump_tol, config.min_track_len, config.depth_window, config.static_fg)

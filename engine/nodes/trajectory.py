@@ -22,18 +22,22 @@ from ..geometry.rigid import weighted_kabsch
 
 
 def lift_tracks(tracks_xy: torch.Tensor, tracks_vis: torch.Tensor, depth: torch.Tensor, K: torch.Tensor,
-                w2c: torch.Tensor, vis_threshold: float = 0.5, edge_tolerance: float = 0.05) -> torch.Tensor:
+                w2c: torch.Tensor, vis_threshold: float = 0.5, edge_tolerance: float = 0.05,
+                tracks_depth: torch.Tensor | None = None) -> torch.Tensor:
     """Lift 2D tracks to world space with depth and cameras.
 
     Samples are dropped (NaN) where the track is occluded or low-confidence
     (``vis < vis_threshold``), off-image, on invalid depth, or on a depth edge
     (3×3 max/min depth ratio above ``1 + edge_tolerance``, where nearest-pixel depth may
-    belong to the other surface).
+    belong to the other surface). A sample with a depth of its own (``tracks_depth``
+    finite and positive: :mod:`engine.priors.hinge_tracks`) is lifted with it and needs no
+    depth map there (a thin link is all depth edge in the map).
 
     Parameters
     ----------
     tracks_xy : (P, F, 2) continuous pixel coords; tracks_vis : (P, F) bool or [0, 1].
-    depth : (F, H, W); K : (F, 3, 3); w2c : (F, 4, 4).
+    depth : (F, H, W); K : (F, 3, 3); w2c : (F, 4, 4); tracks_depth : (P, F) camera depth,
+    NaN where the map decides, or None.
 
     Returns
     -------
@@ -52,6 +56,10 @@ def lift_tracks(tracks_xy: torch.Tensor, tracks_vis: torch.Tensor, depth: torch.
     rc, cc = row.clamp(0, h - 1), col.clamp(0, w - 1)
     z = d[fr, rc, cc]
     ok = inside & (tracks_vis.float() >= vis_threshold) & (z > 0) & ~edge[fr, rc, cc]
+    if tracks_depth is not None:
+        own = torch.isfinite(tracks_depth) & (tracks_depth > 0)
+        z = torch.where(own, tracks_depth.float(), z)
+        ok = ok | (own & inside & (tracks_vis.float() >= vis_threshold))
     x = unproject(K.float().unsqueeze(0).expand(p, -1, -1, -1), w2c.float().unsqueeze(0).expand(p, -1, -1, -1),
                   tracks_xy.float(), z)
     return torch.where(ok.unsqueeze(-1), x, torch.full_like(x, float("nan")))

@@ -73,7 +73,8 @@ class PriorConfig:
     # engine/priors/dynamic_depth.py
     moving_depth: str = "contact"
     # ... and, with 'contact', a moving object that turns about a static point takes that
-    # point's depth ('auto') or not ('off'); engine/priors/hinge.py
+    # point's depth and long tracks along its rings ('auto'), the depth only ('depth') or
+    # neither ('off'); engine/priors/hinge.py, engine/priors/hinge_tracks.py
     hinges: str = "auto"
     # weight-free depth: a moving pixel is no nearer than 1/ratio of the static surface
     # behind it (engine.priors.depth.merge_moving_depth)
@@ -218,7 +219,8 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             tracks = _tracks.track_points(frames, cfg.num_points, cfg.tracks_backend, cfg.tracks_model,
                                           cfg.flow_width, cfg.fb_thresh, reporter=reporter, source=source,
                                           dense_moving=cfg.dense_moving)
-        _save(cache, "tracks", k, **dataclasses.asdict(tracks))
+        # a tracker's tracks carry no depth of their own (hinge tracks are made after the cache)
+        _save(cache, "tracks", k, **{n: a for n, a in dataclasses.asdict(tracks).items() if a is not None})
     log(f"tracks: {tracks.xy.shape[0]} points")
     if isinstance(source, _flow.FusedFlowSource) and "tracks" in recomputed:
         log(f"flow: the learned flow beat DIS at {source.picked:.0%} of the pixels")

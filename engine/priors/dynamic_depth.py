@@ -16,7 +16,8 @@ tracks move only across the rays (the motion the image shows), and candidates, n
 tracks and Gaussians seeded from any frame agree. Used only with the weight-free depth;
 a depth model or file sees the objects and is kept as it is. :func:`moving_object_depth`
 runs the stages in order for ``engine.pipeline.prepare``: ground contact, hinges
-(:mod:`engine.priors.hinge`), one depth per track.
+(:mod:`engine.priors.hinge`), one depth per track, and the hinges' own long tracks
+(:mod:`engine.priors.hinge_tracks`, appended after the per-track depth: they carry theirs).
 """
 
 from __future__ import annotations
@@ -177,41 +178,60 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
     return out, stats
 
 
-def moving_object_depth(pr, prior_config, K, w2c, extent, reporter) -> tuple[np.ndarray, dict]:
-    """The weight-free depth with a depth of their own for moving objects, and what gave it.
+HINGE_MODES = ("auto", "depth", "off")
+
+
+def moving_object_depth(pr, prior_config, K, w2c, extent, reporter) -> tuple[np.ndarray, object, dict]:
+    """The weight-free depth with a depth of their own for moving objects, the tracks with
+    those of the hinges, and what gave them.
 
     The weight-free depth of a moving object is its surroundings' and changes as the object
     crosses them: each moving track gets one depth (:func:`track_consistent_depth`), from
     ground contact and occlusion order ('contact', :func:`ground_contact_depth`) and, for an
     object that turns about a static point, that point's depth where nearer
-    (:mod:`engine.priors.hinge`). ``pr`` : the clip's :class:`~engine.priors.cache.Priors`;
-    ``prior_config`` : its ``PriorConfig``; ``K [F,3,3]``, ``w2c [F,4,4]`` : the cameras of
-    its frames; ``extent`` : the scene's (:func:`engine.geometry.camera.scene_extent`, which
-    ``prepare`` has already); ``reporter`` : what logs the stages. Returns ``(depth [F,H,W], record)``,
+    (:mod:`engine.priors.hinge`); with ``hinges`` 'auto' such an object also gets long tracks
+    along its rings (:mod:`engine.priors.hinge_tracks`; 'depth': the depth only). ``pr`` : the
+    clip's :class:`~engine.priors.cache.Priors`; ``prior_config`` : its ``PriorConfig``;
+    ``K [F,3,3]``, ``w2c [F,4,4]`` : the cameras of its frames; ``extent`` : the scene's
+    (:func:`engine.geometry.camera.scene_extent`, which ``prepare`` has already);
+    ``reporter`` : what logs the stages. Returns ``(depth [F,H,W], tracks, record)``: ``tracks``
+    is ``pr.tracks`` with the hinge tracks appended (:class:`~engine.priors.tracks.Tracks`),
     ``record`` for scene.json's ``priors.depth``.
     """
     mode = prior_config.moving_depth
     if mode not in ("contact", "track"):
         raise ValueError(f"PriorConfig.moving_depth must be 'contact' or 'track', not {mode!r}")
-    if prior_config.hinges not in ("auto", "off"):
-        raise ValueError(f"PriorConfig.hinges must be 'auto' or 'off', not {prior_config.hinges!r}")
+    if prior_config.hinges not in HINGE_MODES:
+        raise ValueError(f"PriorConfig.hinges must be one of {HINGE_MODES}, not {prior_config.hinges!r}")
     record = {"moving_objects": mode}
-    contact = None
+    contact = hinges = None
     if mode == "contact":
         contact, cst = ground_contact_depth(pr.depth, pr.dynamic)
         reporter.log(f"moving objects: ground contact found for {cst['with_contact']} of {cst['blobs']} "
                      "moving blobs")
-        if prior_config.hinges == "auto":
-            contact, record["hinges"] = _with_hinges(contact, pr.depth, pr.dynamic, K, w2c, extent, reporter)
+        if prior_config.hinges != "off":
+            contact, hinges = _with_hinges(contact, pr.depth, pr.dynamic, K, w2c, extent, reporter)
+            record["hinges"] = 0 if hinges is None else int(len(hinges.points))
     depth, st = track_consistent_depth(pr.depth, pr.dynamic, pr.tracks.xy, pr.tracks.visible,
                                        contact=contact, percentile=10.0 if mode == "contact" else 50.0)
     reporter.log(f"moving objects: one depth per moving track ({st['moving_tracks']} tracks, "
                  f"{st['painted_px']} pixels in {st['frames']} frames)")
-    return depth, record
+    tracks = pr.tracks
+    if hinges is not None and prior_config.hinges == "auto":
+        from .hinge_tracks import hinge_tracks
+        from .tracks import concat_tracks
+
+        more = hinge_tracks(hinges, pr.dynamic, K, w2c)
+        record["hinge_tracks"] = 0 if more is None else int(len(more.xy))
+        if more is not None:
+            reporter.log(f"moving objects: {len(more.xy)} tracks along the hinges' rings (median "
+                         f"{int(np.median(more.visible.sum(1)))} frames long)")
+            tracks = concat_tracks(tracks, more)
+    return depth, tracks, record
 
 
-def _with_hinges(contact, depth, dynamic, K, w2c, extent, reporter) -> tuple[np.ndarray, int]:
-    """``(contact', hinges found)``: ``contact [F, H, W]`` with the depth of the hinges found
+def _with_hinges(contact, depth, dynamic, K, w2c, extent, reporter):
+    """``(contact', hinges or None)``: ``contact [F, H, W]`` with the depth of the hinges found
     (engine/priors/hinge.py) where nearer: a moving object that turns about a static point is
     about as far as that point."""
     import torch
@@ -220,11 +240,11 @@ def _with_hinges(contact, depth, dynamic, K, w2c, extent, reporter) -> tuple[np.
     from .hinge import find_hinges, hinge_depth
 
     if not camera_translates(torch.as_tensor(np.asarray(w2c), dtype=torch.float64), extent):
-        return contact, 0  # no parallax, no hinge: skip a search (~0.4 s per 10 frames) that finds none
+        return contact, None  # no parallax, no hinge: skip a search (~0.4 s per 10 frames) that finds none
     hinges = find_hinges(depth, dynamic, K, w2c)
     if not len(hinges.points):
-        return contact, 0
+        return contact, None
     hd, st = hinge_depth(hinges, dynamic, K, w2c, depth=depth)
     reporter.log(f"moving objects: {st['hinges']} hinge(s) (a static point a moving object turns about) give "
                  f"their depth to {st['painted_px']} pixels in {st['frames']} frames")
-    return np.fmin(contact, hd), st["hinges"]
+    return np.fmin(contact, hd), hinges

@@ -208,6 +208,18 @@ def find_hinges(depth: np.ndarray, dynamic: np.ndarray, K: np.ndarray, w2c: np.n
                   np.asarray(frames, np.int64)[order])
 
 
+def blob_holding(labels: np.ndarray, uv: np.ndarray, search_px: int = 3) -> int:
+    """The label of the blob that holds a hinge projected at ``uv [2]`` (continuous px): the
+    label most common among the labelled pixels within ``search_px`` of it; 0 for none.
+    ``labels [H, W]`` int (0 = background, :func:`scipy.ndimage.label`)."""
+    cx, cy = int(np.floor(uv[0])), int(np.floor(uv[1]))
+    if cx + search_px < 0 or cy + search_px < 0:
+        return 0
+    win = labels[max(cy - search_px, 0):cy + search_px + 1, max(cx - search_px, 0):cx + search_px + 1]
+    win = win[win > 0]
+    return int(np.bincount(win).argmax()) if len(win) else 0
+
+
 def hinge_depth(hinges: Hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndarray, threshold: float = 0.5,
                 search_px: int = 3, merged: float = 1.3, depth: np.ndarray | None = None,
                 near: float = 0.6) -> tuple[np.ndarray, dict]:
@@ -249,15 +261,9 @@ def hinge_depth(hinges: Hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndar
         """``(hinge, blob mask, distance map)`` for each hinge seen on a blob of frame ``k``."""
         labels, n = ndimage.label(moving[k], structure=np.ones((3, 3), bool))
         for m in range(len(hinges.points) if n else 0):
-            if z[k, m] <= 0:
-                continue
-            cx, cy = int(np.floor(uv[k, m, 0])), int(np.floor(uv[k, m, 1]))
-            if cx + search_px < 0 or cy + search_px < 0:
-                continue
-            win = labels[max(cy - search_px, 0):cy + search_px + 1, max(cx - search_px, 0):cx + search_px + 1]
-            win = win[win > 0]
-            if len(win):
-                yield m, labels == np.bincount(win).argmax(), np.hypot(xs + 0.5 - uv[k, m, 0], ys + 0.5 - uv[k, m, 1])
+            lab = blob_holding(labels, uv[k, m], search_px) if z[k, m] > 0 else 0
+            if lab:
+                yield m, labels == lab, np.hypot(xs + 0.5 - uv[k, m, 0], ys + 0.5 - uv[k, m, 1])
 
     # two passes over the frames (labelling is cheap; keeping every blob mask is not)
     far, size = [[] for _ in hinges.points], [[] for _ in hinges.points]

@@ -45,12 +45,28 @@ from . import onnx_util
 
 @dataclass
 class Tracks:
-    """``xy [P,F,2]`` float32 pixels, ``visible [P,F]`` bool, ``confidence [P,F]`` float32, ``query_frame [P]`` int."""
+    """``xy [P,F,2]`` float32 pixels, ``visible [P,F]`` bool, ``confidence [P,F]`` float32, ``query_frame [P]`` int;
+    ``depth [P,F]`` float32 or None: a camera depth the track carries itself (NaN where the depth map
+    decides; :mod:`engine.priors.hinge_tracks`), used when the tracks are lifted to 3D."""
 
     xy: np.ndarray
     visible: np.ndarray
     confidence: np.ndarray
     query_frame: np.ndarray
+    depth: np.ndarray | None = None
+
+
+def concat_tracks(first: Tracks, more: Tracks | None) -> Tracks:
+    """``first`` followed by the rows of ``more`` (same frames); a ``depth`` that only one of them
+    has is NaN for the other's rows."""
+    if more is None or not len(more.xy):
+        return first
+    depth = None
+    if first.depth is not None or more.depth is not None:
+        nan = lambda t: np.full(t.visible.shape, np.nan, np.float32)  # noqa: E731
+        depth = np.concatenate([nan(t) if t.depth is None else t.depth.astype(np.float32) for t in (first, more)])
+    cat = lambda name: np.concatenate([getattr(first, name), getattr(more, name).astype(getattr(first, name).dtype)])  # noqa: E731
+    return Tracks(cat("xy"), cat("visible"), cat("confidence"), cat("query_frame"), depth)
 
 
 def _seed(occupied_xy, h, w, cell, tex, margin=2.0):

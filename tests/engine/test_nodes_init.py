@@ -53,6 +53,22 @@ def test_lift_tracks_roundtrip_and_drops_occluded():
     assert torch.allclose(x[ok], pts[ok], atol=1e-3)
 
 
+def test_a_track_with_a_depth_of_its_own_is_lifted_with_it():
+    """A sample with its own camera depth (a hinge track on a thin link, whose pixels are all
+    depth edge in the map) is lifted with that depth; NaN leaves the map to decide."""
+    K, w2c = _camera()
+    pts = torch.tensor([[0.1, 0.2, 0.0], [-0.3, 0.1, 0.0]]).unsqueeze(1).expand(-1, 3, -1)
+    uv, z = project(K.unsqueeze(0), w2c.unsqueeze(0), pts)
+    depth = torch.full((3, 48, 64), 9.0)  # the map sees only a wall behind them
+    depth[:, :, ::2] = 12.0  # ... and it is all edge
+    vis = torch.ones(2, 3, dtype=torch.bool)
+    assert torch.isnan(lift_tracks(uv, vis, depth, K, w2c)).all()
+    own = torch.stack([z[0], torch.full((3,), float("nan"))])
+    x = lift_tracks(uv, vis, depth, K, w2c, tracks_depth=own)
+    assert torch.allclose(x[0], pts[0], atol=1e-4)
+    assert torch.isnan(x[1]).all()
+
+
 def test_spline_fit_recovers_translation_and_fallbacks():
     times = torch.linspace(0, 1, 20)
     key_times = torch.linspace(0, 1, 6)

@@ -5,40 +5,12 @@ one, gives no hinge."""
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+import pytest
 
 from engine.priors.hinge import find_hinges, hinge_depth
+from engine.priors.tracks import Tracks
 
-W, H, FOCAL, WALL = 160, 120, 150.0, 10.0
-
-
-def _cameras(f, travel):
-    """A camera sliding ``travel`` units along +x over ``f`` frames, looking down +z."""
-    K = np.tile(np.array([[FOCAL, 0, W / 2], [0, FOCAL, H / 2], [0, 0, 1.0]]), (f, 1, 1))
-    w2c = np.tile(np.eye(4), (f, 1, 1))
-    w2c[:, 0, 3] = -np.linspace(-travel / 2, travel / 2, f)
-    return K, w2c
-
-
-def _mask(K, w2c, points, radius_px=2):
-    """[F, H, W] float: the projections of ``points [F, P, 3]`` (world, per frame), dilated."""
-    f = len(K)
-    out = np.zeros((f, H, W), bool)
-    for k in range(f):
-        cam = points[k] @ w2c[k, :3, :3].T + w2c[k, :3, 3]
-        uv = cam @ K[k].T
-        u, v = (uv[:, 0] / uv[:, 2]).astype(int), (uv[:, 1] / uv[:, 2]).astype(int)
-        ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        out[k, v[ok], u[ok]] = True
-    grow = np.ones((1, 2 * radius_px + 1, 2 * radius_px + 1), bool)
-    return ndimage.binary_dilation(out, structure=grow).astype(np.float32)
-
-
-def _rod(f, pivot, length=1.2, swing=0.7):
-    """Points of a rod hanging from ``pivot`` and swinging in the x-y plane: [F, P, 3]."""
-    ang = swing * np.sin(np.linspace(0, 2 * np.pi, f))
-    s = np.linspace(0, length, 200)
-    return pivot + s[None, :, None] * np.stack([np.sin(ang), np.cos(ang), np.zeros(f)], -1)[:, None]
+from ._swinging_rod import WALL, H, W, _cameras, _mask, _rod
 
 
 def test_a_swinging_rod_takes_its_pivots_depth():
@@ -105,16 +77,24 @@ def test_the_weight_free_depth_stage_gives_the_rod_its_pivots_depth():
     cam = np.einsum("fij,fpj->fpi", w2c[:, :3, :3], rod[:, ::10]) + w2c[:, None, :3, 3]
     uv = np.einsum("fij,fpj->fpi", K, cam)
     xy = (uv[..., :2] / uv[..., 2:]).transpose(1, 0, 2).astype(np.float32)  # tracks on the rod [P, F, 2]
-    tracks = SimpleNamespace(xy=xy, visible=np.ones(xy.shape[:2], bool))
+    vis = np.ones(xy.shape[:2], bool)
+    tracks = Tracks(xy, vis, vis.astype(np.float32), np.zeros(len(xy), np.int64))
     pr = SimpleNamespace(depth=np.full((f, H, W), WALL, np.float32), dynamic=dynamic, tracks=tracks)
     on = dynamic >= 0.5
-    with_hinges, record = moving_object_depth(pr, PriorConfig(), K, w2c, scene_extent(w2c, pr.depth),
-                                              Reporter(quiet=True))
+    with_hinges, more, record = moving_object_depth(pr, PriorConfig(), K, w2c, scene_extent(w2c, pr.depth),
+                                                    Reporter(quiet=True))
     assert record["moving_objects"] == "contact" and record["hinges"] >= 1
     assert abs(np.median(with_hinges[on]) - 4.0) < 0.3
-    without, record = moving_object_depth(pr, PriorConfig(hinges="off"), K, w2c, scene_extent(w2c, pr.depth),
-                                          Reporter(quiet=True))
-    assert "hinges" not in record and np.median(without[on]) > 8.0
+    # ... and long tracks along the rod's rings, appended with a depth of their own
+    assert record["hinge_tracks"] > 0 and len(more.xy) == len(xy) + record["hinge_tracks"]
+    assert np.isnan(more.depth[:len(xy)]).all() and np.nanmedian(more.depth[len(xy):]) == pytest.approx(4.0, rel=0.05)
+    depth_only, same, record = moving_object_depth(pr, PriorConfig(hinges="depth"), K, w2c,
+                                                   scene_extent(w2c, pr.depth), Reporter(quiet=True))
+    assert record["hinges"] >= 1 and "hinge_tracks" not in record and same is tracks
+    assert np.array_equal(depth_only, with_hinges)
+    without, same, record = moving_object_depth(pr, PriorConfig(hinges="off"), K, w2c,
+                                                scene_extent(w2c, pr.depth), Reporter(quiet=True))
+    assert "hinges" not in record and np.median(without[on]) > 8.0 and same is tracks
 
 
 def test_a_prior_that_already_sees_the_object_keeps_it():
@@ -144,8 +124,9 @@ def test_the_stage_skips_the_search_for_a_camera_that_does_not_translate():
     f = 12
     K, w2c = _cameras(f, travel=0.0)
     dynamic = _mask(K, w2c, _rod(f, np.array([0.0, -0.6, 4.0])))
-    tracks = SimpleNamespace(xy=np.zeros((0, f, 2), np.float32), visible=np.zeros((0, f), bool))
+    tracks = Tracks(np.zeros((0, f, 2), np.float32), np.zeros((0, f), bool), np.zeros((0, f), np.float32),
+                    np.zeros(0, np.int64))
     pr = SimpleNamespace(depth=np.full((f, H, W), WALL, np.float32), dynamic=dynamic, tracks=tracks)
-    _, record = moving_object_depth(pr, PriorConfig(), K, w2c, scene_extent(w2c, pr.depth),
-                                              Reporter(quiet=True))
+    _, _, record = moving_object_depth(pr, PriorConfig(), K, w2c, scene_extent(w2c, pr.depth),
+                                       Reporter(quiet=True))
     assert record == {"moving_objects": "contact", "hinges": 0}
