@@ -120,7 +120,8 @@ def _rigid(ang, band, ang0, tol):
     for b in np.unique(band):  # bands (tens)
         mine = band == b
         near = (np.abs(band - b) <= 2) & ~mine
-        if not near.any():
+        if not near.any():  # a band alone: nothing to compare with
+            ok[mine] = True
             continue
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # frames where every neighbour has ended

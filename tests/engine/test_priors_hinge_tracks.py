@@ -73,3 +73,6 @@ def test_a_band_whose_turn_disagrees_with_its_neighbours_is_cut():
     ok = _run_through(_rigid(ang, band, ang[:, 0], tol=0.15), seed=0)
     assert ok[[0, 1, 2, 4, 5, 6]].all()
     assert ok[3, :6].all() and not ok[3, 6:].any()
+    # a band with no neighbour has nothing to disagree with
+    lone = _rigid(np.vstack([ang, ang[3]]), np.r_[band, 20], np.r_[ang[:, 0], ang[3, 0]], tol=0.15)
+    assert lone[-1].all()
