@@ -151,7 +151,8 @@ def hinge_tracks(hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndarray, th
     ----------
     hinges : :class:`~engine.priors.hinge.Hinges` (world points [M, 3]).
     dynamic : float [F, H, W] dynamic prior (frames in time order); K [F, 3, 3]; w2c [F, 4, 4].
-    seed_frames : evenly spaced frames whose arcs start paths; per_seed_frame : tracks kept
+    seed_frames : how many frames start paths, evenly spread over those whose blob holds the
+        hinge and touches nothing else; per_seed_frame : tracks kept
         per hinge and seed frame (evenly thinned); band_px : band width in pixels at the hinge's
         depth; gap_px : an arc's largest gap; max_jump_px : farthest a path's arc may land from
         its prediction; rigid_tol : radians a path's turn may differ from its neighbour bands';
@@ -180,7 +181,6 @@ def hinge_tracks(hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndarray, th
     # depth ambiguity gives several hinges on one blob, as in hinge_depth)
     for m in range(1, held.shape[1]):
         held[:, m] = np.where((held[:, :m] == held[:, m:m + 1]).any(1), 0, held[:, m])
-    seeds = np.unique(np.linspace(0, f - 1, min(seed_frames, f)).round().astype(np.int64))
     xy_all, vis_all, z_all, q_all = [], [], [], []
     for m, hinge in enumerate(np.asarray(hinges.points, np.float64)):  # hinges (a few)
         zm = z_h[:, m]
@@ -190,6 +190,9 @@ def hinge_tracks(hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndarray, th
         # a blob over `merged` x its median size touches another moving thing: followed through
         # (the arc nearest the prediction decides) but not seeded from (its pixels are not all this body's)
         merged_at = size[:, m] > merged * np.median(size[held[:, m] > 0, m])
+        # seed frames evenly spread over the frames that can seed
+        can = np.nonzero((held[:, m] > 0) & ~merged_at)[0]
+        seeds = can[np.unique(np.linspace(0, len(can) - 1, min(seed_frames, len(can))).round().astype(np.int64))]
         pixels, arcs = [None] * f, [None] * f
         for k in range(f):  # frames
             lab = held[k, m]
@@ -201,8 +204,6 @@ def hinge_tracks(hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndarray, th
             pixels[k] = (uv, ang, r_px, arc)
             arcs[k] = (a_band, a_ang, a_r)
         for s in seeds:  # seed frames (a few)
-            if arcs[s] is None or merged_at[s]:
-                continue
             ang, rad = _follow(arcs, int(s), f, max_jump_px)
             a_band, a_ang, a_r = arcs[s]
             alive = np.isfinite(ang) & _run_through(_rigid(ang, a_band, a_ang, rigid_tol) | (np.arange(f) == s), int(s))
