@@ -45,7 +45,7 @@ def test_config_round_trips_mani_settings_and_refuses_bad_ones():
 def test_initial_nodes_uses_the_runs_mani_keys_and_radius(monkeypatch):
     seen = {}
 
-    def fake_initialise_nodes(*args):
+    def fake_initialise_nodes(*args, **kwargs):
         seen["config"] = args[-1]
         raise StopIteration  # only the config matters here
 
