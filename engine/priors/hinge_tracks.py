@@ -151,12 +151,16 @@ def hinge_tracks(hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndarray, th
     ----------
     hinges : :class:`~engine.priors.hinge.Hinges` (world points [M, 3]).
     dynamic : float [F, H, W] dynamic prior (frames in time order); K [F, 3, 3]; w2c [F, 4, 4].
+    threshold : a pixel is moving where ``dynamic`` reaches it.
     seed_frames : how many frames start paths, evenly spread over those whose blob holds the
-        hinge and touches nothing else; per_seed_frame : tracks kept
-        per hinge and seed frame (evenly thinned); band_px : band width in pixels at the hinge's
-        depth; gap_px : an arc's largest gap; max_jump_px : farthest a path's arc may land from
-        its prediction; rigid_tol : radians a path's turn may differ from its neighbour bands';
-        min_frames : shortest track kept.
+        hinge and touches nothing else.
+    per_seed_frame : tracks kept per hinge and seed frame (evenly thinned).
+    band_px : band width in pixels at the hinge's depth; gap_px : an arc's largest gap.
+    max_jump_px : farthest a path's arc may land from its prediction.
+    rigid_tol : radians a path's turn may differ from its neighbour bands'.
+    min_frames : shortest track kept.
+    search_px : how near the hinge's projection its blob must be (as in ``hinge_depth``).
+    merged : a blob over this x its median size touches another moving thing there.
 
     Returns
     -------
