@@ -47,7 +47,8 @@ from . import onnx_util
 class Tracks:
     """``xy [P,F,2]`` float32 pixels, ``visible [P,F]`` bool, ``confidence [P,F]`` float32, ``query_frame [P]`` int;
     ``depth [P,F]`` float32 or None: a camera depth the track carries itself (NaN where the depth map
-    decides; :mod:`engine.priors.hinge_tracks`), used when the tracks are lifted to 3D."""
+    decides; :mod:`engine.priors.hinge_tracks`), used where the node paths lift them
+    (``lift_tracks``); the track term still lifts each track once from the depth map."""
 
     xy: np.ndarray
     visible: np.ndarray
