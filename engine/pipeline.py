@@ -100,6 +100,7 @@ def training_data(prep: PreparedClip, device="cpu") -> TrainingData:
         depth=f(getattr(pr, "depth", None)), fg=f(getattr(pr, "dynamic", None)),
         tracks_xy=None if tracks is None else f(tracks.xy),
         tracks_vis=None if tracks is None else torch.as_tensor(tracks.visible, dtype=torch.bool, device=device),
+        tracks_depth=None if tracks is None else f(getattr(tracks, "depth", None)),
         extent=prep.extent, frame_numbers=torch.as_tensor(prep.frame_numbers), fps=prep.fps,
         clip_index=None if prep.clip_index is None else torch.as_tensor(prep.clip_index),
         held_out_cameras=prep.held_out_cameras,

@@ -47,8 +47,8 @@ from . import onnx_util
 class Tracks:
     """``xy [P,F,2]`` float32 pixels, ``visible [P,F]`` bool, ``confidence [P,F]`` float32, ``query_frame [P]`` int;
     ``depth [P,F]`` float32 or None: a camera depth the track carries itself (NaN where the depth map
-    decides; :mod:`engine.priors.hinge_tracks`), used where the node paths lift them
-    (``lift_tracks``); the track term still lifts each track once from the depth map."""
+    decides; :mod:`engine.priors.hinge_tracks`), used wherever tracks are lifted: the node paths
+    (``lift_tracks``) and the track term (``TrainingData.tracks_depth``, ``Objective.prepare_tracks``)."""
 
     xy: np.ndarray
     visible: np.ndarray

@@ -22,6 +22,9 @@ class TrainingData:
     fg : (F, H, W) optional foreground/dynamic prior in [0, 1].
     tracks_xy : (P, F, 2) optional 2D tracks in pixels of this resolution.
     tracks_vis : (P, F) bool, where a track is visible.
+    tracks_depth : (P, F) optional camera depth a track carries of its own (NaN: the depth
+        prior decides; e.g. tracks along a hinge's rings, at the hinge's depth, where the
+        prior sees the background behind a thin moving part).
     extent : scene extent (radius of the camera/point cloud bounds) in scene units.
     frame_numbers : (F,) Blender/scene frame number of each frame (for the bundle).
     clip_index : (F,) index of each frame in its source clip (evaluation reloads it).
@@ -42,6 +45,7 @@ class TrainingData:
     fg: torch.Tensor | None = None
     tracks_xy: torch.Tensor | None = None
     tracks_vis: torch.Tensor | None = None
+    tracks_depth: torch.Tensor | None = None
     extent: float = 1.0
     frame_numbers: torch.Tensor | None = None
     fps: float = 24.0
@@ -81,6 +85,8 @@ class TrainingData:
             p = self.tracks_xy.shape[0]
             if tuple(self.tracks_xy.shape) != (p, f, 2) or tuple(self.tracks_vis.shape) != (p, f):
                 raise ValueError("tracks_xy must be (P, F, 2) and tracks_vis (P, F)")
+            if self.tracks_depth is not None and tuple(self.tracks_depth.shape) != (p, f):
+                raise ValueError("tracks_depth must be (P, F) like tracks_vis")
         if len(self.train_idx) == 0:
             raise ValueError("no training frames")
         return self

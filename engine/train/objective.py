@@ -65,7 +65,8 @@ class Objective:
 
     # ---------------------------------------------------------------- track supervision
     def prepare_tracks(self, model: DynamicScene) -> None:
-        """Lift each track once (first visible frame + depth) and map it to canonical space."""
+        """Lift each track once (first visible frame, at its own depth there where it has one,
+        else the depth prior's) and map it to canonical space."""
         d = self.data
         if d.tracks_xy is None or d.depth is None or self.cfg.loss.track == 0 or model.mlp is not None:
             return
@@ -85,6 +86,11 @@ class Objective:
         px = uv[:, 0].long().clamp(0, w - 1)
         py = uv[:, 1].long().clamp(0, h - 1)
         z = d.depth[f0, py, px]
+        if d.tracks_depth is not None:
+            # a track with a depth of its own (along a hinge's rings: the prior sees the
+            # background behind a thin moving link) is lifted there, as the node paths were
+            own = d.tracks_depth[pid, f0]
+            z = torch.where(torch.isfinite(own) & (own > 0), own, z)
         ok = z > 0
         pid, f0, uv, z = pid[ok], f0[ok], uv[ok], z[ok]
         m = model
