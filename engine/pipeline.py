@@ -335,7 +335,8 @@ def initial_nodes(prep: PreparedClip, cfg: TrainConfig) -> B.NodeArrays:
     nodes = initialise_nodes(prep.priors.depth[order], prep.K[order], prep.w2c[order], prep.times[order],
                              prep.priors.tokens.tokens, prep.priors.tokens.patch_centers,
                              prep.priors.dynamic[order], tr.xy[:, order], tr.visible[:, order], init_cfg,
-                             tracks_depth=None if own_depth is None else own_depth[:, order])
+                             tracks_depth=None if own_depth is None else own_depth[:, order],
+                             tracks_translation_only=getattr(tr, "translation_only", None))
     return node_arrays_from(nodes)
 
 

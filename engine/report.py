@@ -217,6 +217,8 @@ def _prior_rows(priors: dict) -> list[list]:
             hinges = f", {src['hinges']} hinge(s)" if "hinges" in src else ""
             if src.get("hinge_tracks"):
                 hinges += f" with {src['hinge_tracks']} tracks along their rings"
+            if src.get("blob_tracks"):
+                hinges += f", {src['blob_tracks']} tracks along compact blobs' paths"
             backend = f"{backend}; moving objects: {src['moving_objects']}{hinges}"
         rows.append([role, backend, model, src.get("sha256") or "", src.get("license") or ""])
     return rows

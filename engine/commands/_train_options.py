@@ -65,6 +65,10 @@ def add_clip_options(parser):
                           "swung from a still body) takes that point's depth, found by parallax, and long tracks "
                           "along its rings (default auto; depth: the depth only; off: ground contact and occlusion "
                           "order only)")
+    pri.add_argument("--blob-tracks", choices=("auto", "off"),
+                     help="weight-free depth: a compact moving object (convex, keeping its size: a ball, a box) "
+                          "gets long tracks along its outline's path, where the optical flow's tracks end within "
+                          "a few frames (default auto; off: none)")
     pri.add_argument("--no-models", action="store_true",
                      help="ignore installed models (python -m engine models): weight-free backends for every "
                           "prior not given above")
@@ -125,6 +129,8 @@ def prior_config_from_args(args):
         cfg.resting_objects = args.resting_objects
     if getattr(args, "hinges", None):
         cfg.hinges = args.hinges
+    if getattr(args, "blob_tracks", None):
+        cfg.blob_tracks = args.blob_tracks
     cfg.depth_path, cfg.mask_path, cfg.tracks_path = args.depth_path, args.mask_path, args.tracks_path
     given = manifest_priors(args.clip)  # a clip manifest's own precomputed priors, unless an option overrides
     cfg.depth_path = cfg.depth_path or given.get("depth")

@@ -67,7 +67,8 @@ def _snap_frame(t: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
 
 
 def initialise_nodes(depth, K, w2c, times, tokens, patch_centers, fg, tracks_xy, tracks_vis,
-                     config: NodeInitConfig = NodeInitConfig(), tracks_depth=None) -> NodeSet:
+                     config: NodeInitConfig = NodeInitConfig(), tracks_depth=None,
+                     tracks_translation_only=None) -> NodeSet:
     """Build the initial node set.
 
     Parameters
@@ -75,7 +76,9 @@ def initialise_nodes(depth, K, w2c, times, tokens, patch_centers, fg, tracks_xy,
     depth : (F, H, W); K : (F, 3, 3); w2c : (F, 4, 4) OpenCV; times : (F,) engine time.
     tokens : (F, Gh, Gw, D); patch_centers : (Gh, Gw, 2) pixels of the depth image.
     fg : (F, H, W) dynamic prior; tracks_xy : (P, F, 2); tracks_vis : (P, F); tracks_depth : (P, F)
-    a depth the tracks carry themselves (NaN where the depth map decides) or None.
+    a depth the tracks carry themselves (NaN where the depth map decides) or None;
+    tracks_translation_only : (P,) bool or None: tracks that follow their object's translation
+    alone (``Tracks.translation_only``), left out of the node rotations.
     config : NodeInitConfig (``config.mani.budget`` is the node budget for every method).
 
     Returns
@@ -90,9 +93,11 @@ def initialise_nodes(depth, K, w2c, times, tokens, patch_centers, fg, tracks_xy,
     tracks3d = lift_tracks(torch.as_tensor(tracks_xy).float(), torch.as_tensor(tracks_vis), depth, K, w2c,
                            config.vis_threshold, config.edge_tolerance,
                            None if tracks_depth is None else torch.as_tensor(tracks_depth).float())
+    turns = None if tracks_translation_only is None else ~torch.as_tensor(tracks_translation_only, dtype=torch.bool)
     if config.clean_tracks:
-        tracks3d, _ = clean_tracks3d(tracks3d, torch.as_tensor(tracks_xy).float(), K, w2c, torch.as_tensor(fg).float(),
+        tracks3d, src = clean_tracks3d(tracks3d, torch.as_tensor(tracks_xy).float(), K, w2c, torch.as_tensor(fg).float(),
                                      config.jump_tol, config.min_track_len, config.depth_window, config.static_fg)
+        turns = None if turns is None else turns[src]
     budget = config.mani.budget
     if config.method == "mani":
         res = mani_compress(cand.positions, cand.tokens, cand.fg, config.mani, time=cand.time)
@@ -114,11 +119,15 @@ def initialise_nodes(depth, K, w2c, times, tokens, patch_centers, fg, tracks_xy,
         p_dyn = cand.fg[nearest[:, 0]]
         if src_time is None:  # voxel means mix frames: take the nearest candidate's frame
             src_time = cand.time[nearest[:, 0]]
-    return assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config)
+    return assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config, turns)
 
 
-def assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config: NodeInitConfig) -> NodeSet:
-    """Radii, graph and trajectories for given centres (shared by every initialiser)."""
+def assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config: NodeInitConfig,
+                     turns: torch.Tensor | None = None) -> NodeSet:
+    """Radii, graph and trajectories for given centres (shared by every initialiser).
+
+    ``turns [P]`` bool or None: the tracks of ``tracks3d`` whose motion shows how their object
+    turns; the node rotations are fitted to those alone (None: all)."""
     n = centers.shape[0]
     key_times = torch.linspace(0, 1, max(2, config.num_keys))
     radii = node_radii(centers, config.radius_k, config.radius_factor)
@@ -131,7 +140,9 @@ def assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config: NodeInit
         frame = _snap_frame(src_time, times)
         frame_rot = None
         if config.rotations == "tracks":
-            frame_rot, frame_ok = node_frame_rotations(centers, frame, radii, tracks3d, config.k_tracks,
+            # a track that follows its object's translation alone would say it never turns
+            turning = tracks3d if turns is None else tracks3d[turns]
+            frame_rot, frame_ok = node_frame_rotations(centers, frame, radii, turning, config.k_tracks,
                                                        config.support_radius)
             rot_keys, _ = fit_node_rotations(frame_rot, frame_ok, times, key_times)
             rot_tan = catmull_rom_tangents(key_times, rot_keys)

@@ -76,6 +76,9 @@ class PriorConfig:
     # point's depth and long tracks along its rings ('auto'), the depth only ('depth') or
     # neither ('off'); engine/priors/hinge.py, engine/priors/hinge_tracks.py
     hinges: str = "auto"
+    # ... and a compact moving blob (convex, keeping its size: a ball, a box) gets long tracks
+    # along its centroid's path ('auto') or none ('off'); engine/priors/blob_tracks.py
+    blob_tracks: str = "auto"
     # weight-free depth: a moving pixel is no nearer than 1/ratio of the static surface
     # behind it (engine.priors.depth.merge_moving_depth)
     moving_depth_ratio: float = 4.0

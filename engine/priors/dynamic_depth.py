@@ -190,12 +190,14 @@ def moving_object_depth(pr, prior_config, K, w2c, extent, reporter) -> tuple[np.
     ground contact and occlusion order ('contact', :func:`ground_contact_depth`) and, for an
     object that turns about a static point, that point's depth where nearer
     (:mod:`engine.priors.hinge`); with ``hinges`` 'auto' such an object also gets long tracks
-    along its rings (:mod:`engine.priors.hinge_tracks`; 'depth': the depth only). ``pr`` : the
+    along its rings (:mod:`engine.priors.hinge_tracks`; 'depth': the depth only), and with
+    ``blob_tracks`` 'auto' a compact moving blob long tracks along its path
+    (:mod:`engine.priors.blob_tracks`). ``pr`` : the
     clip's :class:`~engine.priors.cache.Priors`; ``prior_config`` : its ``PriorConfig``;
     ``K [F,3,3]``, ``w2c [F,4,4]`` : the cameras of its frames; ``extent`` : the scene's
     (:func:`engine.geometry.camera.scene_extent`, which ``prepare`` has already);
     ``reporter`` : what logs the stages. Returns ``(depth [F,H,W], tracks, record)``: ``tracks``
-    is ``pr.tracks`` with the hinge tracks appended (:class:`~engine.priors.tracks.Tracks`),
+    is ``pr.tracks`` with the hinge and blob tracks appended (:class:`~engine.priors.tracks.Tracks`),
     ``record`` for scene.json's ``priors.depth``.
     """
     mode = prior_config.moving_depth
@@ -203,6 +205,8 @@ def moving_object_depth(pr, prior_config, K, w2c, extent, reporter) -> tuple[np.
         raise ValueError(f"PriorConfig.moving_depth must be 'contact' or 'track', not {mode!r}")
     if prior_config.hinges not in HINGE_MODES:
         raise ValueError(f"PriorConfig.hinges must be one of {HINGE_MODES}, not {prior_config.hinges!r}")
+    if prior_config.blob_tracks not in ("auto", "off"):
+        raise ValueError(f"PriorConfig.blob_tracks must be 'auto' or 'off', not {prior_config.blob_tracks!r}")
     record = {"moving_objects": mode}
     contact = hinges = None
     if mode == "contact":
@@ -227,7 +231,32 @@ def moving_object_depth(pr, prior_config, K, w2c, extent, reporter) -> tuple[np.
             reporter.log(f"moving objects: {len(more.xy)} tracks along the hinges' rings (median "
                          f"{int(np.median(more.visible.sum(1)))} frames long)")
             tracks = concat_tracks(tracks, more)
+    if mode == "contact" and prior_config.blob_tracks == "auto":
+        tracks = _with_blob_tracks(tracks, depth, pr.dynamic, hinges, K, w2c, record, reporter)
     return depth, tracks, record
+
+
+def _with_blob_tracks(tracks, depth, dynamic, hinges, K, w2c, record, reporter):
+    """``tracks`` with those of the compact moving blobs appended (engine/priors/blob_tracks.py;
+    a blob holding a hinge has its own), the count in ``record["blob_tracks"]``."""
+    import torch
+
+    from ..geometry.camera import project
+    from .blob_tracks import blob_tracks
+    from .tracks import concat_tracks
+
+    exclude = None
+    if hinges is not None:
+        as64 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
+        uv, z = project(as64(K)[:, None], as64(w2c)[:, None], as64(hinges.points)[None])
+        exclude = np.where((z.numpy() > 0)[..., None], uv.numpy(), np.nan)  # [F, M, 2]
+    more = blob_tracks(dynamic, depth, exclude_uv=exclude)
+    record["blob_tracks"] = 0 if more is None else int(len(more.xy))
+    if more is None:
+        return tracks
+    reporter.log(f"moving objects: {len(more.xy)} tracks along compact blobs' paths (median "
+                 f"{int(np.median(more.visible.sum(1)))} frames long)")
+    return concat_tracks(tracks, more)
 
 
 def _with_hinges(contact, depth, dynamic, K, w2c, extent, reporter):

@@ -48,26 +48,34 @@ class Tracks:
     """``xy [P,F,2]`` float32 pixels, ``visible [P,F]`` bool, ``confidence [P,F]`` float32, ``query_frame [P]`` int;
     ``depth [P,F]`` float32 or None: a camera depth the track carries itself (NaN where the depth map
     decides; :mod:`engine.priors.hinge_tracks`), used wherever tracks are lifted: the node paths
-    (``lift_tracks``) and the track term (``TrainingData.tracks_depth``, ``Objective.prepare_tracks``)."""
+    (``lift_tracks``) and the track term (``TrainingData.tracks_depth``, ``Objective.prepare_tracks``);
+    ``translation_only [P]`` bool or None: tracks that follow their object's translation alone
+    (:mod:`engine.priors.blob_tracks`), which tell nothing of how it turns, so the node rotations
+    are fitted without them (``engine.nodes.initialise_nodes``)."""
 
     xy: np.ndarray
     visible: np.ndarray
     confidence: np.ndarray
     query_frame: np.ndarray
     depth: np.ndarray | None = None
+    translation_only: np.ndarray | None = None
 
 
 def concat_tracks(first: Tracks, more: Tracks | None) -> Tracks:
     """``first`` followed by the rows of ``more`` (same frames); a ``depth`` that only one of them
-    has is NaN for the other's rows."""
+    has is NaN for the other's rows, a ``translation_only`` False."""
     if more is None or not len(more.xy):
         return first
     depth = None
     if first.depth is not None or more.depth is not None:
         nan = lambda t: np.full(t.visible.shape, np.nan, np.float32)  # noqa: E731
         depth = np.concatenate([nan(t) if t.depth is None else t.depth.astype(np.float32) for t in (first, more)])
+    translation_only = None
+    if first.translation_only is not None or more.translation_only is not None:
+        flag = lambda t: np.zeros(len(t.xy), bool) if t.translation_only is None else t.translation_only.astype(bool)  # noqa: E731
+        translation_only = np.concatenate([flag(first), flag(more)])
     cat = lambda name: np.concatenate([getattr(first, name), getattr(more, name).astype(getattr(first, name).dtype)])  # noqa: E731
-    return Tracks(cat("xy"), cat("visible"), cat("confidence"), cat("query_frame"), depth)
+    return Tracks(cat("xy"), cat("visible"), cat("confidence"), cat("query_frame"), depth, translation_only)
 
 
 def _seed(occupied_xy, h, w, cell, tex, margin=2.0):

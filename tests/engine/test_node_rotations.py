@@ -152,3 +152,25 @@ def test_turned_offsets_put_an_off_centre_node_on_its_circle():
     shifted, _, _ = fit_node_trajectories(node[None], source, radii, tracks3d, times, key_times, **kw)
     assert (turned[0] - want).norm(dim=-1).max() < 1e-4
     assert (shifted[0] - want).norm(dim=-1).max() > 0.2  # the centroid's path, not the node's
+
+
+def test_translation_only_tracks_are_left_out_of_the_node_rotations():
+    """Tracks that follow their object's centre alone (blob tracks) sit beside a spinning
+    part's own tracks; with them in the fit the nodes would turn less, without them as much
+    as the part."""
+    from engine.nodes import NodeInitConfig, assemble_nodeset
+
+    spin, _ = _spinning_tracks(11, 0.1)
+    centre = spin.mean(0, keepdim=True)  # [1, F, 3]: the part's centre path (a drift in x)
+    shifted = spin[:, 5:6] + (centre - centre[:, 5:6])  # each point kept at its frame-5 place
+    tracks3d = torch.cat([spin, shifted, shifted])  # twice as many translation-only tracks
+    turns = torch.cat([torch.ones(len(spin), dtype=torch.bool), torch.zeros(2 * len(spin), dtype=torch.bool)])
+    times = torch.linspace(0, 1, 11)
+    centers = spin[:3, 5].clone()
+    args = (centers, torch.full((3,), 0.5), torch.ones(3), tracks3d, times,
+            NodeInitConfig(num_keys=6, k_tracks=12, graph_k=2, radius_k=2))
+    ident = torch.tensor([1.0, 0.0, 0.0, 0.0])
+    with_turns = _angle_between(assemble_nodeset(*args, turns).rot_keys[:, 1], ident)
+    mixed = _angle_between(assemble_nodeset(*args).rot_keys[:, 1], ident)
+    assert torch.allclose(with_turns, torch.full((3,), 0.3), atol=1e-3)
+    assert bool((mixed < 0.2).all()), mixed

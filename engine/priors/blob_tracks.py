@@ -1,0 +1,190 @@
+"""Blob tracks: long 2D tracks on a compact moving object, from its blob's path.
+
+The tracker's flow loses a fast object within a few frames (a rolling ball's DIS tracks live
+~17 of 60 frames on the generated large-motion scenes), so the node paths fitted to them
+follow it only near the frames the tracks came from; the ball holds half of the moving parts'
+zero-motion error there (docs/benchmarks.md, *Where large seed 1's node ratio comes from*). Its
+blob in the motion mask, though, is there in every frame it does not touch something else.
+
+A *compact* blob (convex: its area over its convex hull's, the solidity, at least
+``min_solidity`` in most frames; and round-ish: an elongated one, a rod or a limb, turns in
+the image as it moves) that keeps its size is followed from frame to frame by its
+centroid: the blob of the next frame nearest the centroid's constant-velocity prediction,
+within ``max_jump_px`` and of a similar size, continues it (a frame where it merges with
+another blob, or none is near, is bridged for up to ``max_gap`` frames: the tracks are not
+seen there, but one track spans both sides). Every pixel of the
+blob at a seed frame becomes a track that keeps its offset from the centroid, scaled by the
+blob's depth (an object nearer the camera looks larger). The translation alone: a rolling
+ball's points also turn about its centre, which the flow's own tracks carry near their
+frames; moved by its exact centroid alone, the generated ball's points score 0.23 of zero
+motion. A body that is not compact (a person, an arm, a cloth) changes its outline as its
+parts move, so its centroid is not any point's path: it gets none.
+
+The tracks carry their own camera depth: the median of the depth map over the blob, frame by
+frame (the per-track depth gives a track one depth for its whole life).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .tracks import Tracks
+
+
+def _blobs(mask: np.ndarray, min_px: int):
+    """``(labels [H, W], blobs)``: 8-connected components of ``mask`` with ``min_px`` pixels or
+    more, each ``(label, area, centroid [2] px, solidity, roundness)``."""
+    import cv2
+    from scipy import ndimage
+
+    labels, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    if n == 0:
+        return labels, []
+    idx = np.arange(1, n + 1)
+    area = ndimage.sum_labels(np.ones_like(labels), labels, idx)
+    cy, cx = np.asarray(ndimage.center_of_mass(np.ones_like(labels), labels, idx)).reshape(-1, 2).T
+    out = []
+    for i in np.nonzero(area >= min_px)[0]:  # blobs (a few per frame)
+        ys, xs = np.nonzero(labels == idx[i])
+        hull = cv2.convexHull(np.stack([xs, ys], 1).astype(np.int32))
+        solidity = float(area[i]) / max(float(cv2.contourArea(hull)) + 0.5 * len(hull), 1.0)
+        # roundness: minor over major axis of the blob's second moments (1 = a disc, 0.5 = a 2:1 box)
+        ev = np.linalg.eigvalsh(np.cov(np.stack([xs, ys]).astype(np.float64)) + 1e-9 * np.eye(2))
+        roundness = float(np.sqrt(max(ev[0], 0.0) / max(ev[1], 1e-12)))
+        out.append((int(idx[i]), float(area[i]), np.array([cx[i] + 0.5, cy[i] + 0.5]), min(solidity, 1.0), roundness))
+    return labels, out
+
+
+def _chains(blobs, max_jump_px: float, size_tol: float, max_gap: int):
+    """Link each frame's blobs into paths: ``[[(frame, blob index), ...], ...]``.
+
+    Frame by frame, every path seen within the last ``max_gap + 1`` frames predicts its
+    centroid (constant velocity over its last two blobs); pairs of path and blob within
+    ``max_jump_px`` per elapsed frame and with an area within ``size_tol`` x the path's last
+    three blobs' median are taken nearest first, each path and blob once; a blob left over
+    starts a path.
+    """
+    paths: list[list[tuple[int, int]]] = []
+    for k, frame in enumerate(blobs):  # frames, in time order
+        pairs = []
+        for p, path in enumerate(paths):  # paths alive at k (a few)
+            last_f, last_i = path[-1]
+            gap = k - last_f
+            if gap > max_gap + 1:
+                continue
+            c = blobs[last_f][last_i][2]
+            vel = np.zeros(2)
+            if len(path) > 1:
+                pf, pi = path[-2]
+                vel = (c - blobs[pf][pi][2]) / (last_f - pf)
+            # the recent size: an object coming nearer grows gradually, a merge at once
+            area = float(np.median([blobs[a][b][1] for a, b in path[-3:]]))
+            for n, b in enumerate(frame):
+                d = float(np.linalg.norm(b[2] - (c + gap * vel)))
+                if d <= max_jump_px * gap and 1.0 / size_tol <= b[1] / area <= size_tol:
+                    pairs.append((d, p, n))
+        used_p, used_n = set(), set()
+        for d, p, n in sorted(pairs):
+            if p in used_p or n in used_n:
+                continue
+            used_p.add(p)
+            used_n.add(n)
+            paths[p].append((k, n))
+        paths += [[(k, n)] for n in range(len(frame)) if n not in used_n]
+    return paths
+
+
+def _smooth_log(t: np.ndarray, z: np.ndarray, degree: int = 3, clip: float = 2.5, rounds: int = 3) -> np.ndarray:
+    """``z [T]`` (> 0) at frames ``t [T]`` smoothed: a cubic in log depth, refitted without the
+    samples over ``clip`` standard deviations off it. The blob's median depth jitters by ~4 %
+    from frame to frame on the generated ball (its true depth by 0.3-1 %), and each jitter
+    moves the lifted tracks along their rays."""
+    lz = np.log(z)
+    deg = min(degree, len(t) - 1)
+    keep = np.ones(len(t), bool)
+    for _ in range(rounds):  # robust refits (a few)
+        coef = np.polyfit(t[keep], lz[keep], deg)
+        res = lz - np.polyval(coef, t)
+        keep = np.abs(res) <= clip * max(float(np.std(res[keep])), 1e-3)
+    return np.exp(np.polyval(coef, t))
+
+
+def blob_tracks(dynamic: np.ndarray, depth: np.ndarray, threshold: float = 0.5, exclude_uv: np.ndarray | None = None,
+                min_px: int = 30, min_solidity: float = 0.85, min_roundness: float = 0.4, size_tol: float = 1.5, max_jump_px: float = 20.0,
+                max_gap: int = 10, min_frames: int = 8, seed_frames: int = 6, per_seed_frame: int = 200) -> Tracks | None:
+    """Tracks on the compact moving blobs, moved by their centroids' paths (module docstring).
+
+    Parameters
+    ----------
+    dynamic : float [F, H, W] dynamic prior (frames in time order); depth : float [F, H, W]
+        the depth the moving pixels have (0 = unknown).
+    threshold : a pixel is moving where ``dynamic`` reaches it.
+    exclude_uv : float [F, M, 2] or None: points (px; NaN = none) whose blobs get none (the
+        projections of hinges: a hinge's blob has tracks along its rings).
+    min_px : smallest blob; min_solidity : area over convex hull area a blob must reach in
+        most of its path's frames; min_roundness : ... and minor over major axis (an elongated
+        blob, a rod or a limb, turns as it moves: its centroid is not its points' path); size_tol : a path's blobs stay within this factor of its
+        median area; max_jump_px : farthest the centroid may land from its prediction per
+        frame; max_gap : frames a path may skip; min_frames : shortest path and track kept.
+    seed_frames : frames each path seeds tracks from (evenly spread); per_seed_frame : tracks
+        per path and seed frame (evenly thinned).
+
+    Returns
+    -------
+    :class:`~engine.priors.tracks.Tracks` with ``depth [P, F]`` (the blob's median depth where
+    visible, smoothed over its frames, NaN elsewhere), ``translation_only`` True and
+    ``query_frame`` the seed frame; None when there are none.
+    """
+    f, h, w = dynamic.shape
+    moving = dynamic >= threshold
+    frames = [_blobs(moving[k], min_px) for k in range(f)]
+    labels = [fr[0] for fr in frames]
+    blobs = [fr[1] for fr in frames]
+    if exclude_uv is not None:  # a blob holding a hinge has tracks along its rings
+        from .hinge import blob_holding
+
+        held = [{blob_holding(labels[k], uv) for uv in exclude_uv[k] if np.isfinite(uv).all()} for k in range(f)]
+        blobs = [[b for b in bl if b[0] not in held[k]] for k, bl in enumerate(blobs)]
+    xy_all, vis_all, z_all, q_all = [], [], [], []
+    for path in _chains(blobs, max_jump_px, size_tol, max_gap):  # paths (a few)
+        if len(path) < min_frames:
+            continue
+        pf = np.array([k for k, _ in path])
+        blob = [blobs[k][i] for k, i in path]
+        if np.median([b[3] for b in blob]) < min_solidity or np.median([b[4] for b in blob]) < min_roundness:
+            continue
+        centre = np.full((f, 2), np.nan)
+        z = np.full(f, np.nan)
+        for k, b in zip(pf, blob):  # path frames
+            centre[k] = b[2]
+            zs = depth[k][(labels[k] == b[0]) & (depth[k] > 0)]
+            z[k] = np.median(zs) if len(zs) else np.nan
+        # seen only where the blob is, compact: a bridged frame (merged, or lost) links the two
+        # sides of one track without a position of its own
+        on = np.zeros(f, bool)
+        on[pf] = np.isfinite(z[pf]) & (np.array([b[3] for b in blob]) >= min_solidity)
+        if on.sum() < min_frames:
+            continue
+        z[on] = _smooth_log(np.nonzero(on)[0], z[on])
+        seeds = pf[np.unique(np.linspace(0, len(pf) - 1, min(seed_frames, len(pf))).round().astype(np.int64))]
+        for s in seeds:  # seed frames (a few)
+            lab = blob[int(np.nonzero(pf == s)[0][0])][0]
+            ys, xs = np.nonzero(labels[s] == lab)
+            keep = np.unique(np.linspace(0, len(xs) - 1, min(per_seed_frame, len(xs))).astype(np.int64))
+            off = np.stack([xs[keep] + 0.5, ys[keep] + 0.5], 1) - centre[s]  # [P, 2]
+            scale = np.where(on, z[s] / np.where(z > 0, z, np.nan), np.nan)  # [F]
+            xy = centre[None] + off[:, None] * scale[None, :, None]  # [P, F, 2]
+            vis = on[None] & np.isfinite(xy).all(-1)
+            vis &= (xy[..., 0] >= 0) & (xy[..., 0] < w) & (xy[..., 1] >= 0) & (xy[..., 1] < h)
+            xy_all.append(np.where(vis[..., None], xy, 0.0).astype(np.float32))
+            vis_all.append(vis)
+            z_all.append(np.where(vis, z[None], np.nan).astype(np.float32))
+            q_all.append(np.full(len(keep), s, np.int64))
+    if not xy_all:
+        return None
+    xy, vis, z, q = (np.concatenate(a) for a in (xy_all, vis_all, z_all, q_all))
+    long = vis.sum(1) >= min_frames
+    if not long.any():
+        return None
+    return Tracks(xy[long], vis[long], vis[long].astype(np.float32), q[long], depth=z[long],
+                  translation_only=np.ones(int(long.sum()), bool))
