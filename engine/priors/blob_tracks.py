@@ -8,7 +8,9 @@ blob in the motion mask, though, is there in every frame it does not touch somet
 
 A *compact* blob (convex: its area over its convex hull's, the solidity, at least
 ``min_solidity`` in most frames; and round-ish: an elongated one, a rod or a limb, turns in
-the image as it moves) that keeps its size is followed from frame to frame by its
+the image as it moves) that keeps its size, and whose centroid steps as the flow's tracks
+inside it do (a motion mask spread over a person and a table moves its centroid as it grows
+and shrinks, while the pixels under it barely move), is followed from frame to frame by its
 centroid: the blob of the next frame nearest the centroid's constant-velocity prediction,
 within ``max_jump_px`` and of a similar size, continues it (a frame where it merges with
 another blob, or none is near, is bridged for up to ``max_gap`` frames: the tracks are not
@@ -109,9 +111,36 @@ def _smooth_log(t: np.ndarray, z: np.ndarray, degree: int = 3, clip: float = 2.5
     return np.exp(np.polyval(coef, t))
 
 
+def _moves_with_its_pixels(labels, blob, pf, flow_xy, flow_vis, min_tracks: int = 3, tol: float = 0.5,
+                           tol_px: float = 1.5) -> float:
+    """Share of a path's consecutive frames where the blob's centroid steps as the flow's tracks
+    inside it do: ``|median(track step) − centroid step| <= tol |centroid step| + tol_px``
+    (frames with fewer than ``min_tracks`` such tracks do not count; NaN when none counts).
+
+    A rigid object's pixels move with it; a motion mask that grows, shrinks or slides over a
+    person and a table moves its centroid while the pixels under it barely do."""
+    agree = []
+    for (k0, b0), (k1, b1) in zip(zip(pf[:-1], blob[:-1]), zip(pf[1:], blob[1:])):  # path steps
+        if k1 != k0 + 1:
+            continue
+        on = flow_vis[:, k0] & flow_vis[:, k1]
+        xy0 = flow_xy[on, k0]
+        col = np.clip(xy0[:, 0].astype(np.int64), 0, labels[k0].shape[1] - 1)
+        row = np.clip(xy0[:, 1].astype(np.int64), 0, labels[k0].shape[0] - 1)
+        inside = labels[k0][row, col] == b0[0]
+        if inside.sum() < min_tracks:
+            continue
+        step = np.median(flow_xy[on, k1][inside] - xy0[inside], axis=0)
+        dc = b1[2] - b0[2]
+        agree.append(np.linalg.norm(step - dc) <= tol * np.linalg.norm(dc) + tol_px)
+    return float(np.mean(agree)) if agree else float("nan")
+
+
 def blob_tracks(dynamic: np.ndarray, depth: np.ndarray, threshold: float = 0.5, exclude_uv: np.ndarray | None = None,
                 min_px: int = 30, min_solidity: float = 0.85, min_roundness: float = 0.4, size_tol: float = 1.5, max_jump_px: float = 20.0,
-                max_gap: int = 10, min_frames: int = 8, seed_frames: int = 6, per_seed_frame: int = 200) -> Tracks | None:
+                max_gap: int = 10, min_frames: int = 8, seed_frames: int = 6, per_seed_frame: int = 200,
+                flow_xy: np.ndarray | None = None, flow_vis: np.ndarray | None = None,
+                min_agree: float = 0.7) -> Tracks | None:
     """Tracks on the compact moving blobs, moved by their centroids' paths (module docstring).
 
     Parameters
@@ -128,6 +157,9 @@ def blob_tracks(dynamic: np.ndarray, depth: np.ndarray, threshold: float = 0.5, 
         frame; max_gap : frames a path may skip; min_frames : shortest path and track kept.
     seed_frames : frames each path seeds tracks from (evenly spread); per_seed_frame : tracks
         per path and seed frame (evenly thinned).
+    flow_xy, flow_vis : float [P, F, 2], bool [P, F] or None: the flow's tracks; with them a path
+        is kept only where its centroid steps as the tracks inside the blob do in ``min_agree``
+        of its steps (:func:`_moves_with_its_pixels`; a path no track reaches is dropped).
 
     Returns
     -------
@@ -152,6 +184,8 @@ def blob_tracks(dynamic: np.ndarray, depth: np.ndarray, threshold: float = 0.5, 
         pf = np.array([k for k, _ in path])
         blob = [blobs[k][i] for k, i in path]
         if np.median([b[3] for b in blob]) < min_solidity or np.median([b[4] for b in blob]) < min_roundness:
+            continue
+        if flow_xy is not None and not _moves_with_its_pixels(labels, blob, pf, flow_xy, flow_vis) >= min_agree:
             continue
         centre = np.full((f, 2), np.nan)
         z = np.full(f, np.nan)

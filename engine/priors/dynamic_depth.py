@@ -250,7 +250,7 @@ def _with_blob_tracks(tracks, depth, dynamic, hinges, K, w2c, record, reporter):
         as64 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
         uv, z = project(as64(K)[:, None], as64(w2c)[:, None], as64(hinges.points)[None])
         exclude = np.where((z.numpy() > 0)[..., None], uv.numpy(), np.nan)  # [F, M, 2]
-    more = blob_tracks(dynamic, depth, exclude_uv=exclude)
+    more = blob_tracks(dynamic, depth, exclude_uv=exclude, flow_xy=tracks.xy, flow_vis=tracks.visible)
     record["blob_tracks"] = 0 if more is None else int(len(more.xy))
     if more is None:
         return tracks

@@ -72,6 +72,31 @@ def test_merged_frames_are_bridged_unseen_and_an_excluded_blob_gets_none():
     assert blob_tracks(dynamic, depth, exclude_uv=uv) is None
 
 
+def test_a_blob_whose_pixels_do_not_move_with_it_gets_none():
+    """The flow's tracks inside the disc move with it: kept; standing still under it (a motion
+    mask sliding over things that barely move): dropped."""
+    dynamic, depth = _scene(with_l=False)
+    k = np.arange(F)
+    centre = np.stack([_disc_centre(i) for i in k])
+    offsets = np.stack(np.meshgrid(np.linspace(-4, 4, 3), np.linspace(-4, 4, 3)), -1).reshape(-1, 2)
+    moving = centre[None] + offsets[:, None]  # [9, F, 2]
+    still = np.broadcast_to(centre[:1][None] + offsets[:, None], moving.shape)  # where the disc starts
+    vis = np.ones((len(offsets), F), bool)
+    assert blob_tracks(dynamic, depth, flow_xy=moving, flow_vis=vis) is not None
+    # tracks that stay where the disc began are inside it only at the start: no step counts
+    assert blob_tracks(dynamic, depth, flow_xy=still, flow_vis=vis) is None
+    # a square mask sliding 3.5 px a frame over things that stand still (tracks on a grid)
+    slide = np.zeros_like(dynamic)
+    for i in range(F):
+        x0 = int(5 + 3.5 * i)
+        slide[i, 25:65, x0:x0 + 40] = 1.0
+    grid = np.stack(np.meshgrid(np.arange(5, W, 8.0), np.arange(5, H, 8.0)), -1).reshape(-1, 2)
+    grid_xy = np.broadcast_to(grid[:, None], (len(grid), F, 2))
+    grid_vis = np.ones((len(grid), F), bool)
+    assert blob_tracks(slide, depth) is not None  # compact, round, keeps its size
+    assert blob_tracks(slide, depth, flow_xy=grid_xy, flow_vis=grid_vis) is None
+
+
 def test_an_elongated_blob_gets_none():
     """A bar turning as it crosses (a rod, a limb): its centroid is not its points' path."""
     yy, xx = np.mgrid[0:H, 0:W] + 0.5
