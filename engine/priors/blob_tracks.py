@@ -23,7 +23,9 @@ motion. A body that is not compact (a person, an arm, a cloth) changes its outli
 parts move, so its centroid is not any point's path: it gets none.
 
 The tracks carry their own camera depth: the median of the depth map over the blob, frame by
-frame (the per-track depth gives a track one depth for its whole life).
+frame, smoothed over the path (:func:`_smooth_log`; the per-track depth gives a track one depth
+for its whole life). They are flagged ``translation_only``: the node rotations are fitted
+without them.
 """
 
 from __future__ import annotations
@@ -137,8 +139,8 @@ def _moves_with_its_pixels(labels, blob, pf, flow_xy, flow_vis, min_tracks: int 
 
 
 def blob_tracks(dynamic: np.ndarray, depth: np.ndarray, threshold: float = 0.5, exclude_uv: np.ndarray | None = None,
-                min_px: int = 30, min_solidity: float = 0.85, min_roundness: float = 0.4, size_tol: float = 1.5, max_jump_px: float = 20.0,
-                max_gap: int = 10, min_frames: int = 8, seed_frames: int = 6, per_seed_frame: int = 200,
+                min_px: int = 30, min_solidity: float = 0.85, min_roundness: float = 0.4, size_tol: float = 1.5,
+                max_jump_px: float = 20.0, max_gap: int = 10, min_frames: int = 8, seed_frames: int = 6, per_seed_frame: int = 200,
                 flow_xy: np.ndarray | None = None, flow_vis: np.ndarray | None = None,
                 min_agree: float = 0.7) -> Tracks | None:
     """Tracks on the compact moving blobs, moved by their centroids' paths (module docstring).
@@ -151,10 +153,12 @@ def blob_tracks(dynamic: np.ndarray, depth: np.ndarray, threshold: float = 0.5, 
     exclude_uv : float [F, M, 2] or None: points (px; NaN = none) whose blobs get none (the
         projections of hinges: a hinge's blob has tracks along its rings).
     min_px : smallest blob; min_solidity : area over convex hull area a blob must reach in
-        most of its path's frames; min_roundness : ... and minor over major axis (an elongated
-        blob, a rod or a limb, turns as it moves: its centroid is not its points' path); size_tol : a path's blobs stay within this factor of its
-        median area; max_jump_px : farthest the centroid may land from its prediction per
-        frame; max_gap : frames a path may skip; min_frames : shortest path and track kept.
+        most of its path's frames (and in each frame it is seen); min_roundness : minor over
+        major axis it must reach in most of them (an elongated blob, a rod or a limb, turns as
+        it moves: its centroid is not its points' path); size_tol : a blob continues a path
+        within this factor of the path's last three areas; max_jump_px : farthest the centroid
+        may land from its prediction per frame; max_gap : frames a path may skip; min_frames :
+        shortest path (frames seen) and track kept.
     seed_frames : frames each path seeds tracks from (evenly spread); per_seed_frame : tracks
         per path and seed frame (evenly thinned).
     flow_xy, flow_vis : float [P, F, 2], bool [P, F] or None: the flow's tracks; with them a path
