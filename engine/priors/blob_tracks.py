@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .tracks import Tracks
+from .tracks import Tracks, tracks_from_paths
 
 
 def _blobs(mask: np.ndarray, min_px: int):
@@ -181,7 +181,7 @@ def blob_tracks(dynamic: np.ndarray, depth: np.ndarray, threshold: float = 0.5, 
 
         held = [{blob_holding(labels[k], uv) for uv in exclude_uv[k] if np.isfinite(uv).all()} for k in range(f)]
         blobs = [[b for b in bl if b[0] not in held[k]] for k, bl in enumerate(blobs)]
-    xy_all, vis_all, z_all, q_all = [], [], [], []
+    paths = []  # (xy [P, F, 2], seen [F], depth [F], seed frame) per path and seed frame
     for path in _chains(blobs, max_jump_px, size_tol, max_gap):  # paths (a few)
         if len(path) < min_frames:
             continue
@@ -212,17 +212,5 @@ def blob_tracks(dynamic: np.ndarray, depth: np.ndarray, threshold: float = 0.5, 
             off = np.stack([xs[keep] + 0.5, ys[keep] + 0.5], 1) - centre[s]  # [P, 2]
             scale = np.where(on, z[s] / np.where(z > 0, z, np.nan), np.nan)  # [F]
             xy = centre[None] + off[:, None] * scale[None, :, None]  # [P, F, 2]
-            vis = on[None] & np.isfinite(xy).all(-1)
-            vis &= (xy[..., 0] >= 0) & (xy[..., 0] < w) & (xy[..., 1] >= 0) & (xy[..., 1] < h)
-            xy_all.append(np.where(vis[..., None], xy, 0.0).astype(np.float32))
-            vis_all.append(vis)
-            z_all.append(np.where(vis, z[None], np.nan).astype(np.float32))
-            q_all.append(np.full(len(keep), s, np.int64))
-    if not xy_all:
-        return None
-    xy, vis, z, q = (np.concatenate(a) for a in (xy_all, vis_all, z_all, q_all))
-    long = vis.sum(1) >= min_frames
-    if not long.any():
-        return None
-    return Tracks(xy[long], vis[long], vis[long].astype(np.float32), q[long], depth=z[long],
-                  translation_only=np.ones(int(long.sum()), bool))
+            paths.append((xy, on, z, int(s)))
+    return tracks_from_paths(paths, w, h, min_frames, translation_only=True)

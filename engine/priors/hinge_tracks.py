@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from ..geometry.camera import project, unproject
-from .tracks import Tracks
+from .tracks import Tracks, tracks_from_paths
 
 
 def _wrap(a):
@@ -185,7 +185,7 @@ def hinge_tracks(hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndarray, th
     # depth ambiguity gives several hinges on one blob, as in hinge_depth)
     for m in range(1, held.shape[1]):
         held[:, m] = np.where((held[:, :m] == held[:, m:m + 1]).any(1), 0, held[:, m])
-    xy_all, vis_all, z_all, q_all = [], [], [], []
+    paths = []  # (xy [P, F, 2], seen [P, F], depth [F], seed frame) per hinge and seed frame
     for m, hinge in enumerate(np.asarray(hinges.points, np.float64)):  # hinges (a few)
         zm = z_h[:, m]
         if not (held[:, m] > 0).any():
@@ -219,16 +219,5 @@ def hinge_tracks(hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndarray, th
             theta = ang[arc] + delta
             radius = rad[arc] + r_off
             xy = uv_h[None, :, m] + radius[..., None] * np.stack([np.cos(theta), np.sin(theta)], -1)
-            vis = alive[arc] & np.isfinite(xy).all(-1)
-            vis &= (xy[..., 0] >= 0) & (xy[..., 0] < w) & (xy[..., 1] >= 0) & (xy[..., 1] < h)
-            xy_all.append(np.where(vis[..., None], xy, 0.0).astype(np.float32))
-            vis_all.append(vis)
-            z_all.append(np.where(vis, zm[None], np.nan).astype(np.float32))
-            q_all.append(np.full(len(keep), s, np.int64))
-    if not xy_all:
-        return None
-    xy, vis, z, q = (np.concatenate(a) for a in (xy_all, vis_all, z_all, q_all))
-    long = vis.sum(1) >= min_frames
-    if not long.any():
-        return None
-    return Tracks(xy[long], vis[long], vis[long].astype(np.float32), q[long], depth=z[long])
+            paths.append((xy, alive[arc], zm, int(s)))
+    return tracks_from_paths(paths, w, h, min_frames)

@@ -61,6 +61,33 @@ class Tracks:
     translation_only: np.ndarray | None = None
 
 
+def tracks_from_paths(paths, width: int, height: int, min_frames: int, translation_only: bool = False) -> Tracks | None:
+    """Tracks from seeded paths (:mod:`engine.priors.hinge_tracks`, :mod:`engine.priors.blob_tracks`).
+
+    ``paths``: ``(xy [P, F, 2] px, seen [P, F] or [F] bool, depth [F] camera depth, seed frame)``
+    per seed frame; a sample is visible where seen, finite and inside the ``width`` x ``height``
+    image, and carries the frame's depth; tracks visible in fewer than ``min_frames`` frames are
+    dropped. Returns :class:`Tracks` (``query_frame`` the seed frame, ``translation_only`` set
+    when asked) or None when none is left.
+    """
+    xy_all, vis_all, z_all, q_all = [], [], [], []
+    for xy, seen, depth, seed in paths:  # seed frames (a few per object)
+        vis = np.broadcast_to(seen, xy.shape[:2]) & np.isfinite(xy).all(-1)
+        vis &= (xy[..., 0] >= 0) & (xy[..., 0] < width) & (xy[..., 1] >= 0) & (xy[..., 1] < height)
+        xy_all.append(np.where(vis[..., None], xy, 0.0).astype(np.float32))
+        vis_all.append(vis)
+        z_all.append(np.where(vis, np.asarray(depth)[None], np.nan).astype(np.float32))
+        q_all.append(np.full(len(xy), seed, np.int64))
+    if not xy_all:
+        return None
+    xy, vis, z, q = (np.concatenate(a) for a in (xy_all, vis_all, z_all, q_all))
+    long = vis.sum(1) >= min_frames
+    if not long.any():
+        return None
+    flag = np.ones(int(long.sum()), bool) if translation_only else None
+    return Tracks(xy[long], vis[long], vis[long].astype(np.float32), q[long], depth=z[long], translation_only=flag)
+
+
 def concat_tracks(first: Tracks, more: Tracks | None) -> Tracks:
     """``first`` followed by the rows of ``more`` (same frames); a ``depth`` that only one of them
     has is NaN for the other's rows, a ``translation_only`` False."""
