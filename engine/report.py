@@ -214,12 +214,12 @@ def _prior_rows(priors: dict) -> list[list]:
         model = src.get("model") or (src.get("file") if src.get("backend") == "file" else "weight-free")
         backend = src.get("backend")
         if src.get("moving_objects"):  # the weight-free depth's own depth for moving objects (pipeline.prepare)
-            hinges = f", {src['hinges']} hinge(s)" if "hinges" in src else ""
+            found = f", {src['hinges']} hinge(s)" if "hinges" in src else ""
             if src.get("hinge_tracks"):
-                hinges += f" with {src['hinge_tracks']} tracks along their rings"
+                found += f" with {src['hinge_tracks']} tracks along their rings"
             if src.get("blob_tracks"):
-                hinges += f", {src['blob_tracks']} tracks along compact blobs' paths"
-            backend = f"{backend}; moving objects: {src['moving_objects']}{hinges}"
+                found += f", {src['blob_tracks']} tracks along compact blobs' paths"
+            backend = f"{backend}; moving objects: {src['moving_objects']}{found}"
         rows.append([role, backend, model, src.get("sha256") or "", src.get("license") or ""])
     return rows
 

@@ -239,17 +239,13 @@ def moving_object_depth(pr, prior_config, K, w2c, extent, reporter) -> tuple[np.
 def _with_blob_tracks(tracks, depth, dynamic, hinges, K, w2c, record, reporter):
     """``tracks`` with those of the compact moving blobs appended (engine/priors/blob_tracks.py;
     a blob holding a hinge has its own), the count in ``record["blob_tracks"]``."""
-    import torch
-
-    from ..geometry.camera import project
     from .blob_tracks import blob_tracks
     from .tracks import concat_tracks
 
     exclude = None
     if hinges is not None:
-        as64 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
-        uv, z = project(as64(K)[:, None], as64(w2c)[:, None], as64(hinges.points)[None])
-        exclude = np.where((z.numpy() > 0)[..., None], uv.numpy(), np.nan)  # [F, M, 2]
+        uv, z = hinges.project(K, w2c)
+        exclude = np.where((z > 0)[..., None], uv, np.nan)  # [F, M, 2]
     more = blob_tracks(dynamic, depth, exclude_uv=exclude, flow_xy=tracks.xy, flow_vis=tracks.visible)
     record["blob_tracks"] = 0 if more is None else int(len(more.xy))
     if more is None:

@@ -39,6 +39,13 @@ class Hinges:
     support: np.ndarray
     frames: np.ndarray
 
+    def project(self, K: np.ndarray, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every hinge in every frame: ``(uv [F, M, 2] px, z [F, M] camera depth)``, float64,
+        for cameras ``K [F, 3, 3]``, ``w2c [F, 4, 4]``."""
+        as64 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
+        uv, z = project(as64(K)[:, None], as64(w2c)[:, None], as64(self.points)[None])
+        return uv.numpy(), z.numpy()
+
 
 def _candidates(depth, moving, refs, max_per_frame):
     """Moving pixels with a depth in the reference frames, evenly thinned:
@@ -251,9 +258,7 @@ def hinge_depth(hinges: Hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndar
     stats = {"hinges": int(len(hinges.points)), "painted_px": 0, "frames": 0}
     if not len(hinges.points):
         return out, stats
-    as64 = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
-    uv, z = project(as64(K)[:, None], as64(w2c)[:, None], as64(hinges.points)[None])
-    uv, z = uv.numpy(), z.numpy()  # [F, M, 2], [F, M]
+    uv, z = hinges.project(K, w2c)  # [F, M, 2], [F, M]
     moving = dynamic >= threshold
     ys, xs = np.mgrid[0:h, 0:w]
 

@@ -29,7 +29,7 @@ import warnings
 import numpy as np
 import torch
 
-from ..geometry.camera import project, unproject
+from ..geometry.camera import unproject
 from .tracks import Tracks, tracks_from_paths
 
 
@@ -174,9 +174,7 @@ def hinge_tracks(hinges, dynamic: np.ndarray, K: np.ndarray, w2c: np.ndarray, th
     f, h, w = dynamic.shape
     if not len(hinges.points) or f < 2:
         return None
-    as64 = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
-    uv_h, z_h = project(as64(K)[:, None], as64(w2c)[:, None], as64(hinges.points)[None])
-    uv_h, z_h = uv_h.numpy(), z_h.numpy()  # [F, M, 2], [F, M]
+    uv_h, z_h = hinges.project(K, w2c)  # [F, M, 2], [F, M]
     labels = [ndimage.label(dynamic[k] >= threshold, structure=np.ones((3, 3), bool))[0] for k in range(f)]
     held = np.array([[blob_holding(labels[k], uv_h[k, m], search_px) if z_h[k, m] > 0 else 0
                       for m in range(len(hinges.points))] for k in range(f)])  # [F, M] blob label
