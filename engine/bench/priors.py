@@ -35,6 +35,13 @@ one row per metric group:
     ``survival`` = tracks alive at frame 0 still alive at the last frame (``survival_gt``:
     the fraction of them whose GT point is still visible there — the ceiling);
     ``alive_ratio`` = live tracks at the last frame ÷ at frame 0 (re-seeding included).
+``object_tracks``
+    The tracks the trainer gets (with the weight-free depth the flow's plus those of the
+    hinges and the compact moving blobs, :mod:`engine.priors.dynamic_depth`) per moving object
+    of the scene: ``tracks_<name>``, the median frames each is visible (``len_<name>``), the
+    median end-point error after its first frame (``epe_<name>``, px; the same ground truth:
+    a rolling ball's translation-only blob tracks miss its turn) and ``tracked8_<name>``. The
+    large-motion family (``--kind large``): the thin fast forearm's tracks are the short ones.
 ``runtime``
     Seconds per prior stage (tracks, depth, dynamic mask, tokens), the solve and the GT
     evaluation, plus the machine (CPU, cores, Python) and the 1-minute load average.
@@ -73,6 +80,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frames", type=int, default=None,
                         help="frames to generate (with --scene: use the first N train frames)")
     parser.add_argument("--seed", type=int, default=0, help="generator seed")
+    parser.add_argument("--kind", default="all",
+                        help="generated scene family (tools/synth_scene.py --kind; 'large': the large-motion family)")
     parser.add_argument("--keep", metavar="DIR", help="generate into DIR and keep it (default: a temp folder)")
     parser.add_argument("--num-points", type=int, default=None, help="track density (PriorConfig.num_points)")
     parser.add_argument("--solve-masks", choices=("none", "gt"), default="none",
@@ -96,11 +105,13 @@ def add_arguments(parser) -> None:
 # scene generation and ground truth
 
 
-def generate(out_dir, preset: str = "small", frames: int | None = None, seed: int = 0) -> Path:
+def generate(out_dir, preset: str = "small", frames: int | None = None, seed: int = 0, kind: str = "all") -> Path:
     """Run ``tools/synth_scene.py`` (needs bpy) in a subprocess; returns the scene folder."""
     if not GENERATOR.is_file():
         raise FileNotFoundError(f"{GENERATOR} is missing: pass an existing scene with --scene")
     cmd = [sys.executable, str(GENERATOR), "--out", str(out_dir), "--preset", preset, "--seed", str(seed), "--quiet"]
+    if kind != "all":
+        cmd += ["--kind", kind]
     if frames:
         cmd += ["--frames", str(int(frames))]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=str(REPO))
@@ -224,7 +235,7 @@ def gt_tracks(tracks, gt: SceneGT, tol: float = 0.02, radius: float = 0.25, k: i
 
     Returns a dict: ``xy [P,F,2]`` GT positions, ``visible [P,F]`` / ``occluded [P,F]`` bool
     (neither = ambiguous or unknown), ``f0 [P]`` first frame, ``valid [P]`` (a GT could be
-    built), ``dynamic [P]`` (seeded on a moving object).
+    built), ``dynamic [P]`` (seeded on a moving object), ``object [P]`` the object id under the seed.
     """
     P, F = tracks.visible.shape
     depth = gt.depth
@@ -288,7 +299,8 @@ def gt_tracks(tracks, gt: SceneGT, tol: float = 0.02, radius: float = 0.25, k: i
     gvis = front & planar & (np.abs(z - d) <= tol * z) & fit_ok & valid[:, None]
     gocc = front & (dmax < z * (1 - tol)) & fit_ok & valid[:, None]
     gocc |= ~inside & valid[:, None] & fit_ok  # left the image: should not be visible either
-    return {"xy": uv, "visible": gvis, "occluded": gocc, "f0": f0, "valid": valid, "dynamic": dynamic & valid}
+    return {"xy": uv, "visible": gvis, "occluded": gocc, "f0": f0, "valid": valid, "dynamic": dynamic & valid,
+            "object": obj}
 
 
 # ----------------------------------------------------------------------------------------
@@ -404,6 +416,51 @@ def track_metrics(tracks, gt: SceneGT) -> dict:
             "track_len_dynamic": stat((vis[G["dynamic"]].sum(1)).astype(float), np.median)}
 
 
+def object_track_metrics(tracks, gt: SceneGT) -> dict:
+    """Per moving object (``gt.info["object_ids"]``), the tracks seeded on it: ``tracks_<name>``
+    their count, ``len_<name>`` the median frames each is visible, ``epe_<name>`` the median
+    end-point error (px) over its visible pairs after its first frame where the ground truth
+    sees the point, ``tracked8_<name>`` the share still there (visible, within 3 px) 8 frames
+    later where the ground truth sees it (None where no such track reaches). What the node paths
+    of each object are fitted to: a thin fast part whose tracks live a frame or two gets paths
+    that follow it only near those frames."""
+    P, F = tracks.visible.shape
+    G = gt_tracks(tracks, gt)
+    vis = np.asarray(tracks.visible, bool)
+    after = np.arange(F)[None] > G["f0"][:, None]
+    epe = np.linalg.norm(tracks.xy.astype(np.float64) - G["xy"], axis=-1)
+    obj = G["object"]
+    at8 = np.minimum(G["f0"] + 8, F - 1)
+    reach8 = G["dynamic"] & (G["f0"] + 8 < F) & G["visible"][np.arange(P), at8]
+    good8 = vis[np.arange(P), at8] & (epe[np.arange(P), at8] < 3.0)
+    out = {}
+    for name, oid in sorted(gt.info.get("object_ids", {}).items(), key=lambda kv: kv[1]):
+        if int(oid) == 0:  # the static scene: the "tracks" row's static figures
+            continue
+        on = G["dynamic"] & (obj == int(oid))
+        pairs = vis & G["visible"] & after & on[:, None]
+        out[f"tracks_{name}"] = int(on.sum())
+        out[f"len_{name}"] = float(np.median(vis[on].sum(1))) if on.any() else None
+        out[f"epe_{name}"] = float(np.median(epe[pairs])) if pairs.any() else None
+        out[f"tracked8_{name}"] = float(good8[on & reach8].mean()) if (on & reach8).any() else None
+    return out
+
+
+def moving_object_tracks(pri, cfg, gt: SceneGT):
+    """The tracks the trainer gets: with the weight-free depth, those of
+    :func:`engine.priors.dynamic_depth.moving_object_depth` (the flow's plus the hinges' and the
+    compact blobs'), with the ground-truth cameras; with a depth model or file, the flow's."""
+    from ..geometry.camera import scene_extent
+    from ..pipeline import depth_source
+    from ..priors.dynamic_depth import moving_object_depth
+    from ..protocol import Reporter
+
+    if depth_source(cfg) != "weight-free":
+        return pri.tracks
+    _, tracks, _ = moving_object_depth(pri, cfg, gt.K, gt.w2c, scene_extent(gt.w2c, pri.depth), Reporter(quiet=True))
+    return tracks
+
+
 @contextmanager
 def _stage_timer(times: dict):
     """Time the four prior stages inside :func:`engine.priors.compute_priors`."""
@@ -494,6 +551,11 @@ def bench_scene(scene_dir, frames: int | None = None, num_points: int | None = N
     tm = track_metrics(pri.tracks, gt)
     gt_s = time.perf_counter() - t1
     rows.append({**base, "group": "tracks", **tm, "time_s": stages.get("tracks")})
+    t2 = time.perf_counter()
+    moving = moving_object_tracks(pri, cfg, gt)
+    moving_s = time.perf_counter() - t2
+    rows.append({**base, "group": "object_tracks", "tracks": int(len(moving.xy)),
+                 **object_track_metrics(moving, gt), "time_s": moving_s})
     rows.append({**base, "group": "runtime", "tracks_s": stages.get("tracks"), "depth_s": stages.get("depth"),
                  "dynamic_s": stages.get("dynamic"), "tokens_s": stages.get("tokens"), "priors_total_s": total,
                  "solve_s": rows[0].get("time_s") if solve else None, "gt_eval_s": gt_s,
@@ -515,7 +577,7 @@ def run(args) -> list[dict]:
                 tmp = tempfile.TemporaryDirectory(prefix="ms_bench_priors_")
                 out = Path(tmp.name) / args.preset
             t0 = time.perf_counter()
-            scenes = [generate(out, args.preset, args.frames, args.seed)]
+            scenes = [generate(out, args.preset, args.frames, args.seed, args.kind)]
             gen_s = time.perf_counter() - t0
             print(f"generated {args.preset} scene in {gen_s:.1f} s: {scenes[0]}", file=sys.stderr)
         side_tmp = tempfile.TemporaryDirectory(prefix="ms_bench_model_")

@@ -64,6 +64,22 @@ def test_perfect_inputs_score_perfectly(loaded):
     cut = vis[sel].copy(); cut[:, 1:] = False
     t0 = bench.track_metrics(Tracks(uv[sel].astype(np.float32), cut, cut.astype(np.float32), np.zeros(sel.sum(), int)), gt)
     assert t0["coverage_dynamic"] == 0.0
+    # per object: each moving object's points seen in frame 0 are its tracks, exact, as long as
+    # they are visible; cut after the first frame they are one frame long and none is there
+    # 8 frames later
+    per = bench.object_track_metrics(tr, gt)
+    g = bench.gt_tracks(tr, gt)
+    moving = {n: i for n, i in gt.info["object_ids"].items() if i > 0 and (g["dynamic"] & (g["object"] == i)).any()}
+    assert moving
+    for n, i in moving.items():
+        on = g["dynamic"] & (g["object"] == i)
+        assert per[f"tracks_{n}"] == on.sum() and (gt.point_object[sel][on] == i).mean() > 0.9, (n, per)
+        assert per[f"len_{n}"] == np.median(vis[sel][on].sum(1)) > 1 and per[f"epe_{n}"] < 0.05, (n, per)
+    cut_per = bench.object_track_metrics(Tracks(uv[sel].astype(np.float32), cut, cut.astype(np.float32),
+                                                np.zeros(sel.sum(), int)), gt)
+    for n in moving:
+        assert cut_per[f"len_{n}"] == 1.0 and cut_per[f"epe_{n}"] is None
+        assert cut_per[f"tracked8_{n}"] in (None, 0.0)
 
 
 def test_prior_options_build_the_config(tmp_path):
@@ -83,7 +99,7 @@ def test_prior_options_build_the_config(tmp_path):
 def test_bench_rows(scene):
     rows = bench.bench_scene(scene, solve=False)
     groups = {r["group"]: r for r in rows}
-    assert set(groups) == {"depth", "dynamic", "tracks", "runtime"}
+    assert set(groups) == {"depth", "dynamic", "tracks", "object_tracks", "runtime"}
     need = {"depth": ["absrel_static", "absrel_all", "delta1_static"],
             "dynamic": ["iou", "precision", "recall"],
             "tracks": ["epe_median", "epe_mean", "survival", "alive_ratio", "false_visible"],
@@ -102,6 +118,12 @@ def test_bench_rows(scene):
     assert groups["tracks"]["tracks"] > 0 and groups["tracks"]["pairs"] > 0
     assert 0.0 <= groups["tracks"]["survival"] <= 1.0
     assert groups["tracks"]["epe_median"] < 2.0 and groups["tracks"]["within_2px"] > 0.5
+    # the trainer's tracks per moving object: the flow's at least (hinges and blobs add to them)
+    ot = groups["object_tracks"]
+    assert ot["tracks"] >= groups["tracks"]["tracks"]
+    names = [n for n, i in bench.load_scene(scene)[2].info["object_ids"].items() if i > 0]
+    assert names and all(f"len_{n}" in ot for n in names)
+    assert sum(ot[f"tracks_{n}"] for n in names) > 0
 
 
 @pytest.mark.slow
