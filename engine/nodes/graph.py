@@ -32,6 +32,40 @@ def node_graph(centers: torch.Tensor, k: int = 8) -> tuple[torch.Tensor, torch.T
     return idx.gather(1, order), d2.gather(1, order)
 
 
+def path_graph(paths: torch.Tensor, k: int = 8, chunk: int = 256) -> tuple[torch.Tensor, torch.Tensor]:
+    """k nearest *other* nodes of every node by the distance between their paths: the
+    largest distance between the two over time (MoSca's curve distance).
+
+    Two nodes that are near at one time but part later (either side of an elbow, a hand
+    and the table it leaves) are far on this measure, so an as-rigid-as-possible term on
+    this graph does not tie parts that move apart; nodes that move together stay near.
+
+    Parameters
+    ----------
+    paths : (N, T, 3) node positions at T shared times (e.g. the spline keys).
+    k : int, clamped to ``N − 1``.
+    chunk : rows per block (the block's ``[chunk, N, T]`` distances bound the memory).
+
+    Returns
+    -------
+    idx : (N, k') long, nearest first, never the node itself (k' = min(k, N−1)).
+    dist2 : (N, k') squared curve distances.
+    """
+    n = paths.shape[0]
+    kk = min(k, n - 1)
+    if kk <= 0:
+        return (torch.zeros(n, 0, dtype=torch.long, device=paths.device),
+                torch.zeros(n, 0, dtype=paths.dtype, device=paths.device))
+    idx, d2 = [], []
+    for a in range(0, n, chunk):  # row blocks (a few): [chunk, N, T] at a time
+        rows = paths[a:a + chunk]
+        far = ((rows[:, None] - paths[None]) ** 2).sum(-1).amax(-1)  # [c, N]
+        far[torch.arange(len(rows), device=paths.device), torch.arange(a, a + len(rows), device=paths.device)] = float("inf")
+        v, i = torch.topk(far, kk, dim=1, largest=False)
+        idx.append(i); d2.append(v)
+    return torch.cat(idx), torch.cat(d2)
+
+
 def node_radii(centers: torch.Tensor, k: int = 4, factor: float = 1.0, min_radius: float = 1e-4) -> torch.Tensor:
     """Radius = ``factor`` × mean distance to the ``k`` nearest other nodes (``(N,)``).
 

@@ -124,6 +124,9 @@ class TrainConfig:
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     node_rotations: str = "tracks"       # initial node rotations: "tracks" (rigid rotation of each node's lifted
                                          # tracks; a rolling or swinging part turns its texture) or "identity"
+    arap_graph: str = "paths"            # ARAP neighbours: nearest "paths" (the largest distance between two nodes'
+                                         # key positions, engine.nodes.graph.path_graph: parts that move apart, either
+                                         # side of an elbow, are not tied) or nearest canonical "centres"
     radius_k: int = 4                    # node RBF radius from the distance to this many nearest nodes
     radius_factor: float = 1.0           # ... times this factor
     bind_k: int = 4                      # nodes per Gaussian (K in the paper)
@@ -234,6 +237,8 @@ class TrainConfig:
             bad("lifespan_min", "and lifespan_max must satisfy 0 < lifespan_min <= 1 <= lifespan_max")
         if not (0 <= self.canonical_time <= 1 or self.canonical_time == -1):
             bad("canonical_time", "must be in [0, 1] (fraction of the training frames) or -1 (source frames)")
+        if self.arap_graph not in ("centres", "paths"):
+            bad("arap_graph", "must be 'centres' or 'paths'")
         if self.bind_k > self.num_nodes:
             bad("bind_k", "cannot exceed num_nodes")
         self._validate_nodes(bad)

@@ -91,11 +91,14 @@ def bind_within_class(points: torch.Tensor, point_dyn: torch.Tensor, nodes: torc
     return idx, w
 
 
-def graph_within_class(centers: torch.Tensor, node_dyn: torch.Tensor, k: int) -> torch.Tensor:
+def graph_within_class(centers: torch.Tensor, node_dyn: torch.Tensor, k: int,
+                       paths: torch.Tensor | None = None) -> torch.Tensor:
     """``[N, k]`` neighbour indices among nodes of the same class (a class smaller than
     ``k + 1`` repeats its nearest neighbour; a class of one links to itself, which ARAP
-    reads as a zero-length edge)."""
-    from ..nodes.graph import node_graph
+    reads as a zero-length edge). With ``paths [N, T, 3]`` (the nodes' positions at their
+    keys) neighbours are nearest by the largest distance between their paths
+    (:func:`engine.nodes.graph.path_graph`), else by ``centers [N, 3]``."""
+    from ..nodes.graph import node_graph, path_graph
 
     n = centers.shape[0]
     out = torch.arange(n, device=centers.device).unsqueeze(1).expand(n, k).clone()
@@ -106,7 +109,8 @@ def graph_within_class(centers: torch.Tensor, node_dyn: torch.Tensor, k: int) ->
         if m < 2:
             continue
         kk = min(k, m - 1)
-        g = node_graph(centers[ids].cpu(), kk)[0].to(centers.device)
+        g = (node_graph(centers[ids].cpu(), kk) if paths is None else path_graph(paths[ids].detach().cpu(), kk))[0]
+        g = g.to(centers.device)
         if kk < k:
             g = torch.cat([g, g[:, :1].expand(-1, k - kk)], 1)
         out[ids] = ids[g]

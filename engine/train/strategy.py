@@ -276,8 +276,10 @@ class NodeDensifyStrategy:
             m.node_fg = new_fg.contiguous()
             m.node_dyn = new_dyn.contiguous()
             k = m.graph_idx.shape[1] if m.graph_idx.numel() else 0
-            if k and m.is_split:
-                m.graph_idx = graph_within_class(new_centers, m.node_dyn, k)
+            paths = m.pos_keys if cfg.arap_graph == "paths" else None
+            if k and (m.is_split or paths is not None):
+                m.graph_idx = graph_within_class(new_centers, m.node_dyn if m.is_split else torch.ones_like(m.node_dyn), k,
+                                                 paths=paths)
             elif k:
                 m.graph_idx = node_graph(new_centers.cpu(), k)[0].to(self.device)
             rebind()

@@ -37,6 +37,32 @@ def test_graph_links_nodes_within_their_class():
     assert bool((graph != torch.arange(30)[:, None]).all())  # no self-edges while a class has > 1 node
 
 
+def test_path_graph_does_not_link_parts_that_move_apart():
+    """Two links of an arm: the forearm starts held out sideways and folds up against the
+    upper link. At the last key every forearm node sits next to an upper-link node, so nearest
+    centres there link across the elbow; nearest paths (the largest distance over the keys)
+    link each node within its own link."""
+    from engine.nodes.graph import path_graph
+
+    t = torch.linspace(0, 1, 9)
+    upper = torch.stack([torch.zeros(5), torch.zeros(5), -torch.linspace(0.1, 0.5, 5)], 1)  # [5, 3], still
+    along = torch.linspace(0.2, 0.6, 5)[:, None]  # from the elbow at (0, 0, -0.5)
+    angle = 0.5 * torch.pi * t[None]  # sideways -> up, beside the upper link
+    fore = torch.stack([0.03 + along * torch.cos(angle), torch.zeros(5, 9), -0.5 + along * torch.sin(angle)], -1)
+    paths = torch.cat([upper[:, None].expand(5, 9, 3), fore])  # [10, 9, 3]
+    node_dyn = torch.ones(10, dtype=torch.bool)
+    part = torch.arange(10) >= 5
+    by_centres = graph_within_class(paths[:, -1], node_dyn, 2)
+    by_paths = graph_within_class(paths[:, -1], node_dyn, 2, paths=paths)
+    assert bool((part[by_centres] != part[:, None]).any())
+    assert bool((part[by_paths] == part[:, None]).all())
+    idx, d2 = path_graph(paths, 3)
+    far = ((paths[:, None] - paths[None]) ** 2).sum(-1).amax(-1)  # brute force [10, 10]
+    torch.testing.assert_close(d2, far.gather(1, idx))
+    assert bool((idx != torch.arange(10)[:, None]).all())
+    torch.testing.assert_close(path_graph(paths, 3, chunk=3)[1], d2)  # row blocks change nothing
+
+
 def test_freeze_zeroes_static_gradients_only():
     keys = torch.nn.Parameter(torch.zeros(4, 3, 3))
     (keys * torch.arange(1.0, 5.0)[:, None, None]).sum().backward()

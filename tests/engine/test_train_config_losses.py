@@ -29,6 +29,7 @@ def test_presets_are_valid_and_round_trip():
     ({"canonical_time": 1.5}, "canonical_time"),
     ({"canonical_time": -0.5}, "canonical_time"),
     ({"motion_init": "still"}, "motion_init"),
+    ({"arap_graph": "knn"}, "arap_graph"),
 ])
 def test_bad_config_is_refused_with_the_key(data, msg):
     with pytest.raises(InputError, match=msg):
