@@ -32,7 +32,7 @@ def node_graph(centers: torch.Tensor, k: int = 8) -> tuple[torch.Tensor, torch.T
     return idx.gather(1, order), d2.gather(1, order)
 
 
-def path_graph(paths: torch.Tensor, k: int = 8, chunk: int = 256) -> tuple[torch.Tensor, torch.Tensor]:
+def path_graph(paths: torch.Tensor, k: int = 8, max_elements: int = 1 << 24) -> tuple[torch.Tensor, torch.Tensor]:
     """k nearest *other* nodes of every node by the distance between their paths: the
     largest distance between the two over time (MoSca's curve distance).
 
@@ -44,7 +44,8 @@ def path_graph(paths: torch.Tensor, k: int = 8, chunk: int = 256) -> tuple[torch
     ----------
     paths : (N, T, 3) node positions at T shared times (e.g. the spline keys).
     k : int, clamped to ``N − 1``.
-    chunk : rows per block (the block's ``[chunk, N, T]`` distances bound the memory).
+    max_elements : the rows are taken in blocks whose ``[rows, N, T, 3]`` differences hold at
+        most this many values (64 MB in float32: one key per frame of a long clip stays bounded).
 
     Returns
     -------
@@ -57,7 +58,8 @@ def path_graph(paths: torch.Tensor, k: int = 8, chunk: int = 256) -> tuple[torch
         return (torch.zeros(n, 0, dtype=torch.long, device=paths.device),
                 torch.zeros(n, 0, dtype=paths.dtype, device=paths.device))
     idx, d2 = [], []
-    for a in range(0, n, chunk):  # row blocks (a few): [chunk, N, T] at a time
+    chunk = max(1, int(max_elements) // max(n * paths.shape[1] * 3, 1))
+    for a in range(0, n, chunk):  # row blocks (a few): [chunk, N, T, 3] at a time
         rows = paths[a:a + chunk]
         far = ((rows[:, None] - paths[None]) ** 2).sum(-1).amax(-1)  # [c, N]
         far[torch.arange(len(rows), device=paths.device), torch.arange(a, a + len(rows), device=paths.device)] = float("inf")

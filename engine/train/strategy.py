@@ -278,8 +278,7 @@ class NodeDensifyStrategy:
             k = m.graph_idx.shape[1] if m.graph_idx.numel() else 0
             paths = m.pos_keys if cfg.arap_graph == "paths" else None
             if k and (m.is_split or paths is not None):
-                m.graph_idx = graph_within_class(new_centers, m.node_dyn if m.is_split else torch.ones_like(m.node_dyn), k,
-                                                 paths=paths)
+                m.graph_idx = graph_within_class(new_centers, m.node_dyn, k, paths=paths)  # one class unsplit
             elif k:
                 m.graph_idx = node_graph(new_centers.cpu(), k)[0].to(self.device)
             rebind()
