@@ -127,14 +127,19 @@ def test_cancel_writes_checkpoint_and_resume(extension, registered, tmp_path, ti
 
 
 def test_crashing_interpreter_fails_cleanly(registered, tmp_path, clean_jobs):
+    """An engine that crashes during the run: the job fails with the reason, no traceback."""
     jobs = clean_jobs
     fake = tmp_path / "fake_python"
+    # it crashes a second after starting: the operator has returned by then (one that crashed
+    # before the operator's first drain was reported by the operator itself, a race that failed
+    # this test once under a loaded fresh-clone run)
     fake.write_text(f"#!{sys.executable}\n" + textwrap.dedent(
         """
-        import sys
+        import sys, time
         def boom():
             raise RuntimeError("segfault in fake engine")
         print("starting", flush=True)
+        time.sleep(1.0)
         boom()
         """), encoding="utf-8")
     fake.chmod(0o755)
