@@ -374,6 +374,15 @@ def mask_metrics(dynamic, gt: SceneGT, thresh: float = 0.5) -> dict:
             "f1": 2 * tp / max(2 * tp + fp + fn, 1.0), "gt_dynamic_frac": float(g.mean()), "pred_dynamic_frac": float(pred.mean())}
 
 
+def _eight_frames_on(vis, epe, G) -> tuple[np.ndarray, np.ndarray]:
+    """``(reach [P], there [P])``: a moving track whose point the ground truth sees 8 frames
+    after its first; and whether the track is there then (visible, within 3 px)."""
+    P, F = vis.shape
+    at8 = np.minimum(G["f0"] + 8, F - 1)
+    reach = G["dynamic"] & (G["f0"] + 8 < F) & G["visible"][np.arange(P), at8]
+    return reach, vis[np.arange(P), at8] & (epe[np.arange(P), at8] < 3.0)
+
+
 def track_metrics(tracks, gt: SceneGT) -> dict:
     P, F = tracks.visible.shape
     G = gt_tracks(tracks, gt)
@@ -393,9 +402,7 @@ def track_metrics(tracks, gt: SceneGT) -> dict:
     # moving parts: is the track there (visible and within 3 px) where GT says the point is visible?
     good = vis & (epe < 3.0)
     gdyn = G["dynamic"][:, None] & G["visible"] & after
-    d8 = G["dynamic"] & (G["f0"] + 8 < F)
-    at8 = np.minimum(G["f0"] + 8, F - 1)
-    d8 &= G["visible"][np.arange(P), at8]
+    d8, there8 = _eight_frames_on(vis, epe, G)
     return {"tracks": int(P), "tracks_dynamic": int(G["dynamic"].sum()), "gt_valid": float(G["valid"].mean()),
             "pairs": int(pairs.sum()),
             "epe_median": stat(e, np.median), "epe_mean": stat(e, np.mean),
@@ -412,7 +419,7 @@ def track_metrics(tracks, gt: SceneGT) -> dict:
             "false_visible_dynamic": float((judged & G["occluded"] & G["dynamic"][:, None]).sum()
                                            / max((judged & G["dynamic"][:, None]).sum(), 1)),
             "coverage_dynamic": float((good & gdyn).sum() / max(gdyn.sum(), 1)),
-            "tracked8_dynamic": float(good[np.arange(P), at8][d8].mean()) if d8.any() else None,
+            "tracked8_dynamic": float(there8[d8].mean()) if d8.any() else None,
             "track_len_dynamic": stat((vis[G["dynamic"]].sum(1)).astype(float), np.median)}
 
 
@@ -424,15 +431,13 @@ def object_track_metrics(tracks, gt: SceneGT) -> dict:
     later where the ground truth sees it (None where no such track reaches). What the node paths
     of each object are fitted to: a thin fast part whose tracks live a frame or two gets paths
     that follow it only near those frames."""
-    P, F = tracks.visible.shape
+    F = tracks.visible.shape[1]
     G = gt_tracks(tracks, gt)
     vis = np.asarray(tracks.visible, bool)
     after = np.arange(F)[None] > G["f0"][:, None]
     epe = np.linalg.norm(tracks.xy.astype(np.float64) - G["xy"], axis=-1)
     obj = G["object"]
-    at8 = np.minimum(G["f0"] + 8, F - 1)
-    reach8 = G["dynamic"] & (G["f0"] + 8 < F) & G["visible"][np.arange(P), at8]
-    good8 = vis[np.arange(P), at8] & (epe[np.arange(P), at8] < 3.0)
+    reach8, good8 = _eight_frames_on(vis, epe, G)
     out = {}
     for name, oid in sorted(gt.info.get("object_ids", {}).items(), key=lambda kv: kv[1]):
         if int(oid) == 0:  # the static scene: the "tracks" row's static figures
