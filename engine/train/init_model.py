@@ -195,8 +195,7 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
                                                        cfg.radius_k, cfg.radius_factor)
         rot_keys = canonical_rotations(data, key_times, rot_keys, cfg.canonical_time)
     if graph is not None and (node_dyn is not None or cfg.arap_graph == "paths"):
-        one_class = torch.ones(len(centers), dtype=torch.bool, device=dev)
-        graph = graph_within_class(centers, one_class if node_dyn is None else node_dyn, graph.shape[1],
+        graph = graph_within_class(centers, node_dyn, graph.shape[1],
                                    paths=pos_keys if cfg.arap_graph == "paths" else None)
     if cfg.motion == "per_frame":
         # one key per training frame, initialised by sampling the initial spline there

@@ -91,16 +91,18 @@ def bind_within_class(points: torch.Tensor, point_dyn: torch.Tensor, nodes: torc
     return idx, w
 
 
-def graph_within_class(centers: torch.Tensor, node_dyn: torch.Tensor, k: int,
+def graph_within_class(centers: torch.Tensor, node_dyn: torch.Tensor | None, k: int,
                        paths: torch.Tensor | None = None) -> torch.Tensor:
-    """``[N, k]`` neighbour indices among nodes of the same class (a class smaller than
-    ``k + 1`` repeats its nearest neighbour; a class of one links to itself, which ARAP
-    reads as a zero-length edge). With ``paths [N, T, 3]`` (the nodes' positions at their
+    """``[N, k]`` neighbour indices among nodes of the same class (``node_dyn`` None: one
+    class; a class smaller than ``k + 1`` repeats its nearest neighbour; a class of one links
+    to itself, which ARAP reads as a zero-length edge). With ``paths [N, T, 3]`` (the nodes' positions at their
     keys) neighbours are nearest by the largest distance between their paths
     (:func:`engine.nodes.graph.path_graph`), else by ``centers [N, 3]``."""
     from ..nodes.graph import node_graph, path_graph
 
     n = centers.shape[0]
+    if node_dyn is None:
+        node_dyn = torch.ones(n, dtype=torch.bool, device=centers.device)
     out = torch.arange(n, device=centers.device).unsqueeze(1).expand(n, k).clone()
     all_nodes = torch.arange(n, device=centers.device)
     for cls in (True, False):
