@@ -80,7 +80,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frames", type=int, default=None,
                         help="frames to generate (with --scene: use the first N train frames)")
     parser.add_argument("--seed", type=int, default=0, help="generator seed")
-    parser.add_argument("--kind", default="all",
+    parser.add_argument("--kind", default="all", choices=("all", "articulated", "large", "nonrigid", "rigid"),
                         help="generated scene family (tools/synth_scene.py --kind; 'large': the large-motion family)")
     parser.add_argument("--keep", metavar="DIR", help="generate into DIR and keep it (default: a temp folder)")
     parser.add_argument("--num-points", type=int, default=None, help="track density (PriorConfig.num_points)")
