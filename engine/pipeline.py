@@ -175,14 +175,20 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     f, h, w = frames.shape[:3]
     depth = np.zeros((f, h, w), np.float32)
     dynamic = np.zeros((f, h, w), np.float32)
-    d_source = depth_source(prior_config or PriorConfig())
+    prior_config = given_config = prior_config or PriorConfig()
+    check = getattr(pr, "depth_check", None)
+    if check is not None and not check["used"]:  # the depth model was set aside (engine/priors/depth_check.py)
+        from .priors.depth_check import without_depth_model
+
+        prior_config = without_depth_model(prior_config)
+    d_source = depth_source(prior_config)
     extent = scene_extent(w2c[train], pr.depth)
     train_depth, moving_record = pr.depth, {}
     if d_source == "weight-free":
         from .priors.dynamic_depth import moving_object_depth
 
-        train_depth, tracks, moving_record = moving_object_depth(pr, prior_config or PriorConfig(), K[order],
-                                                                 w2c[order], extent, reporter)
+        train_depth, tracks, moving_record = moving_object_depth(pr, prior_config, K[order], w2c[order], extent,
+                                                                 reporter)
     else:
         tracks = pr.tracks
     depth[order] = train_depth
@@ -191,7 +197,7 @@ def prepare(clip, cfg: TrainConfig, prior_config=None, cache_dir=None, reporter:
     priors = _FramePriors(tokens=pr.tokens, tracks=full, depth=depth, dynamic=dynamic, train_order=order,
                           recomputed=list(getattr(pr, "recomputed", [])),
                           depth_source=d_source,
-                          sources=_prior_sources(prior_config or PriorConfig(), moving_record))
+                          sources=_prior_sources(prior_config, moving_record, check, given_config))
     return PreparedClip(frames=frames, K=K, w2c=w2c, times=times, train_idx=train, val_idx=val, priors=priors,
                         frame_numbers=frame_numbers(clip, times), fps=float(clip.fps or 24.0),
                         extent=extent, source=str(clip.source or ""),
@@ -280,14 +286,22 @@ class _FramePriors:
     sources: dict = dataclasses.field(default_factory=dict)  # scene.json "priors": model + sha256 per prior
 
 
-def _prior_sources(prior_config, moving_record: dict | None = None) -> dict:
+def _prior_sources(prior_config, moving_record: dict | None = None, depth_check: dict | None = None,
+                   given_config=None) -> dict:
     """Which model (name + SHA-256) or weight-free backend produces each prior (``engine.models``);
-    ``moving_record`` (what gave moving objects their weight-free depth) joins ``depth``'s."""
+    ``moving_record`` (what gave moving objects their weight-free depth) joins ``depth``'s, and so
+    does ``depth_check`` (a depth model's check against the triangulated points; a model set
+    aside is named under ``set_aside``, from ``given_config``, the PriorConfig as given)."""
     from .models import describe_priors
 
     out = describe_priors(prior_config)
-    if moving_record and "depth" in out:
-        out["depth"] = {**out["depth"], **moving_record}
+    if "depth" in out:
+        if moving_record:
+            out["depth"] = {**out["depth"], **moving_record}
+        if depth_check is not None:
+            out["depth"]["check"] = {k: v for k, v in depth_check.items() if k != "used"}
+            if not depth_check["used"] and given_config is not None:
+                out["depth"]["set_aside"] = describe_priors(given_config)["depth"]
     return out
 
 

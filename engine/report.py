@@ -220,6 +220,12 @@ def _prior_rows(priors: dict) -> list[list]:
             if src.get("blob_tracks"):
                 found += f", {src['blob_tracks']} tracks along compact blobs' paths"
             backend = f"{backend}; moving objects: {src['moving_objects']}{found}"
+        check = src.get("check") or {}
+        if src.get("set_aside"):  # a depth model that explained the static points no better than flat
+            backend += (f"; depth model {src['set_aside'].get('model')} set aside (its error at triangulated "
+                        f"static points {check.get('ratio', float('nan')):.2f}x a flat depth's)")
+        elif check.get("ratio") is not None:
+            backend += f"; checked: error at triangulated static points {check['ratio']:.2f}x a flat depth's"
         rows.append([role, backend, model, src.get("sha256") or "", src.get("license") or ""])
     return rows
 

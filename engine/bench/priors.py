@@ -96,9 +96,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--depth-model", help="ONNX monocular depth model (research weights: benchmark only)")
     parser.add_argument("--depth-output", choices=("inverse", "depth"), default=None,
                         help="what --depth-model predicts (default: its sidecar, else inverse)")
+    parser.add_argument("--depth-check", choices=("auto", "off"), default=None,
+                        help="check --depth-model against the triangulated static points and set it aside when it "
+                             "explains them no better than a flat depth (auto, the engine's default) or use it "
+                             "whatever it scores (off: measures the model itself)")
     parser.add_argument("--depth-sidecar", metavar="JSON",
-                        help="sidecar JSON for --depth-model (e.g. '{\"size_multiple\": 64, \"mean\": [0,0,0], "
-                             "\"std\": [1,1,1]}'); the model is linked into a temp folder beside it")
+                        help="input settings for --depth-model, as its sidecar JSON's keys (a JSON object or a file; "
+                             "e.g. '{\"size_multiple\": 64, \"mean\": [0,0,0], \"std\": [1,1,1]}')")
 
 
 # ----------------------------------------------------------------------------------------
@@ -495,8 +499,8 @@ def _stage_timer(times: dict):
             p.stop()
 
 
-def prior_config(args, tmp_dir=None):
-    """PriorConfig from the bench's prior options (``--depth-sidecar`` writes into ``tmp_dir``)."""
+def prior_config(args):
+    """PriorConfig from the bench's prior options."""
     from ..priors import PriorConfig
 
     cfg = PriorConfig()
@@ -511,14 +515,14 @@ def prior_config(args, tmp_dir=None):
     if getattr(args, "flow_alone", False):
         cfg.flow_fuse_dis = False
     if getattr(args, "depth_model", None):
-        model = Path(args.depth_model).resolve()
-        if args.depth_sidecar:
-            link = Path(tmp_dir) / model.name
-            os.symlink(model, link)
-            link.with_name(model.name + ".json").write_text(args.depth_sidecar)
-            model = link
-        cfg.depth_backend, cfg.depth_model = "onnx", str(model)
+        from ..priors.onnx_util import parse_settings
+
+        cfg.depth_backend, cfg.depth_model = "onnx", str(Path(args.depth_model).resolve())
         cfg.depth_output = args.depth_output
+        if args.depth_sidecar:
+            cfg.depth_sidecar = parse_settings(args.depth_sidecar)
+        if getattr(args, "depth_check", None):
+            cfg.depth_check = args.depth_check
     return cfg
 
 
@@ -550,7 +554,9 @@ def bench_scene(scene_dir, frames: int | None = None, num_points: int | None = N
     with _stage_timer(stages):
         pri = compute_priors(imgs, gt.K, gt.w2c, cfg, cache_dir=None)
     total = time.perf_counter() - t0
-    rows.append({**base, "group": "depth", **depth_metrics(pri.depth, gt), "time_s": stages.get("depth")})
+    check = getattr(pri, "depth_check", None) or {}  # a depth model's check (engine/priors/depth_check.py)
+    rows.append({**base, "group": "depth", **depth_metrics(pri.depth, gt), "time_s": stages.get("depth"),
+                 **({"model_used": check["used"], "model_ratio": check["ratio"]} if check else {})})
     rows.append({**base, "group": "dynamic", **mask_metrics(pri.dynamic, gt), "time_s": stages.get("dynamic")})
     t1 = time.perf_counter()
     tm = track_metrics(pri.tracks, gt)
@@ -585,12 +591,10 @@ def run(args) -> list[dict]:
             scenes = [generate(out, args.preset, args.frames, args.seed, args.kind)]
             gen_s = time.perf_counter() - t0
             print(f"generated {args.preset} scene in {gen_s:.1f} s: {scenes[0]}", file=sys.stderr)
-        side_tmp = tempfile.TemporaryDirectory(prefix="ms_bench_model_")
-        cfg = prior_config(args, side_tmp.name)
+        cfg = prior_config(args)
         for sc in scenes:
             rows += bench_scene(sc, frames=args.frames if args.scene else None, num_points=args.num_points,
                                 solve=not args.skip_solve, solve_masks=args.solve_masks, cfg=cfg)
-        side_tmp.cleanup()
     finally:
         if tmp is not None:
             tmp.cleanup()

@@ -53,6 +53,14 @@ def add_clip_options(parser):
     pri.add_argument("--depth-output", choices=("inverse", "depth"),
                      help="what --depth-model predicts: inverse (larger = nearer, MiDaS/Depth Anything) or depth "
                           "(larger = farther, e.g. PyDNet); default: the model's sidecar JSON, else inverse")
+    pri.add_argument("--depth-sidecar", metavar="JSON",
+                     help="--depth-model's input settings when no sidecar JSON sits beside it: a JSON object or "
+                          "the path of a JSON file, e.g. '{\"size_multiple\": 64, \"mean\": [0,0,0], "
+                          "\"std\": [1,1,1]}' (PyDNet: RGB/255, sides multiples of 64)")
+    pri.add_argument("--depth-check", choices=("auto", "off"),
+                     help="--depth-model is first scored against the triangulated static points: one that "
+                          "explains them no better than a flat depth is set aside for the weight-free depth "
+                          "(default auto; off: use the model whatever it scores)")
     pri.add_argument("--depth-path", help="precomputed depth (.npy [F,H,W] or folder of 16-bit PNG)")
     pri.add_argument("--mask-path", help="precomputed masks (folder of PNG)")
     pri.add_argument("--tracks-path", help="precomputed tracks (.npz with xy [P,F,2], visible [P,F])")
@@ -125,6 +133,12 @@ def prior_config_from_args(args):
     if getattr(args, "flow_alone", False):
         cfg.flow_fuse_dis = False
     cfg.depth_output = getattr(args, "depth_output", None)
+    if getattr(args, "depth_check", None):
+        cfg.depth_check = args.depth_check
+    if getattr(args, "depth_sidecar", None):
+        from ..priors.onnx_util import parse_settings
+
+        cfg.depth_sidecar = parse_settings(args.depth_sidecar)
     if getattr(args, "resting_objects", None):
         cfg.resting_objects = args.resting_objects
     if getattr(args, "hinges", None):

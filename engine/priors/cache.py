@@ -34,16 +34,18 @@ import numpy as np
 from ..fsutil import atomic_save_npz
 from ..geometry.camera import scene_extent
 from . import depth as _depth
+from . import depth_check as _check
 from . import flow as _flow
 from . import motion as _motion
 from . import precomputed as _pre
+from . import onnx_util as _onnx
 from . import resting as _resting
 from . import tokens as _tokens
 from . import tracks as _tracks
 
 CACHE_VERSION = 1
 RESTING_MODES = ("auto", "off")
-ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth_pass1": 3, "dynamic": 9, "depth": 5}
+ALGO_VERSIONS = {"tokens": 1, "tracks": 3, "depth_check": 1, "depth_pass1": 3, "dynamic": 9, "depth": 5}
 
 
 @dataclass
@@ -89,6 +91,13 @@ class PriorConfig:
     depth_path: str | None = None
     depth_width: int = 320
     depth_output: str | None = None  # ONNX depth: 'inverse' | 'depth' (larger = farther); None: sidecar, else inverse
+    # ONNX depth: sidecar keys (input size, mean/std, size_multiple, ...) laid over the model's
+    # sidecar file, for a model without one (engine.priors.onnx_util.model_settings)
+    depth_sidecar: dict | None = None
+    # ONNX depth: checked against the triangulated static points first ('auto'): a model that
+    # explains them no better than a flat depth is set aside for the weight-free depth
+    # (engine/priors/depth_check.py); 'off' uses the model whatever it says
+    depth_check: str = "auto"
     mask_backend: str = "motion"
     mask_model: str | None = None
     mask_path: str | None = None
@@ -110,6 +119,9 @@ class Priors:
     dynamic: np.ndarray
     keys: dict
     recomputed: list
+    # a depth model's check (engine.priors.depth_check.model_agreement) and whether its depth
+    # was used ("used"); None when no model was checked
+    depth_check: dict | None = None
 
 
 def clip_identity(frames, K, w2c) -> str:
@@ -228,16 +240,29 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
     if isinstance(source, _flow.FusedFlowSource) and "tracks" in recomputed:
         log(f"flow: the learned flow beat DIS at {source.picked:.0%} of the pixels")
 
-    # depth, first pass (depends on tracks unless precomputed): what the motion mask needs
-    dp = {"backend": cfg.depth_backend, "model": _file_id(cfg.depth_model), "path": _file_id(cfg.depth_path),
-          "w": cfg.depth_width, "out": cfg.depth_output}
-    dp2 = dict(dp, ratio=cfg.moving_depth_ratio, front=cfg.moving_depth_front)
     # a precomputed mask is known before depth: its dynamic regions give no anchors
     pre_mask = _pre.load_mask(cfg.mask_path, (F, H, W)) if cfg.mask_path else None
+    model_out = []  # a depth model's raw output: run once, aligned to each pass's anchors
+    check = None
+    if cfg.depth_check not in ("auto", "off"):
+        raise ValueError(f"PriorConfig.depth_check must be 'auto' or 'off', not {cfg.depth_check!r}")
+    if cfg.depth_backend == "onnx" and not cfg.depth_path and cfg.depth_check == "auto":
+        check = _depth_model_check(cfg, cid, frames, K, w2c, tracks, pre_mask, cache, keys, recomputed, model_out,
+                                   reporter)
+        name = Path(cfg.depth_model).name
+        if check["used"]:
+            log(f"depth model {name}: {_check.describe(check)}")
+        else:
+            log(f"depth model {name} set aside: {_check.describe(check)}; using the weight-free depth "
+                "(--depth-check off uses the model anyway)", level="warning")
+            cfg = _check.without_depth_model(cfg)
+            model_out.clear()
+
+    # depth, first pass (depends on tracks unless precomputed): what the motion mask needs
+    dp = _depth_params(cfg)
+    dp2 = dict(dp, ratio=cfg.moving_depth_ratio, front=cfg.moving_depth_front)
     up = () if cfg.depth_path else (keys["tracks"], _file_id(cfg.mask_path))
     keys["depth_pass1"] = k = prior_key("depth_pass1", cid, dp, up)
-
-    model_out = []  # a depth model's raw output: run once, aligned to each pass's anchors
 
     def estimate(dynamic):
         if cfg.depth_path:
@@ -245,10 +270,11 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
             return d, np.ones_like(d)
         if cfg.depth_backend == "onnx" and not model_out:
             model_out.append(_depth.model_predictions(frames, cfg.depth_model, cfg.depth_width, cfg.depth_output,
-                                                      reporter))
+                                                      reporter, cfg.depth_sidecar))
         return _depth.estimate_depth(frames, K, w2c, cfg.depth_backend, cfg.depth_model, tracks=tracks,
                                      dynamic=dynamic, max_width=cfg.depth_width, reporter=reporter,
-                                     output=cfg.depth_output, predictions=model_out[0] if model_out else None)
+                                     output=cfg.depth_output, predictions=model_out[0] if model_out else None,
+                                     settings=cfg.depth_sidecar)
 
     def cached_depth(name, key, compute):
         z = _load(cache, name, key)
@@ -311,4 +337,33 @@ def compute_priors(frames, K, w2c, config: PriorConfig | None = None, cache_dir=
               patch_size_px=np.asarray(tok.patch_size_px, np.float64))
     if reporter is not None:
         reporter.progress("priors", 4, 4)
-    return Priors(tok, tracks, depth, dconf, dyn, keys, recomputed)
+    return Priors(tok, tracks, depth, dconf, dyn, keys, recomputed, check)
+
+
+def _depth_params(cfg) -> dict:
+    """The depth settings a depth prior's cache key holds (a model's sidecar settings included)."""
+    dp = {"backend": cfg.depth_backend, "model": _file_id(cfg.depth_model), "path": _file_id(cfg.depth_path),
+          "w": cfg.depth_width, "out": cfg.depth_output}
+    if cfg.depth_backend == "onnx" and cfg.depth_model:  # the sidecar file's settings and the given ones
+        side = _onnx.model_settings(cfg.depth_model, cfg.depth_sidecar) if Path(cfg.depth_model).is_file() else {}
+        if side:
+            dp["side"] = side
+    return dp
+
+
+def _depth_model_check(cfg, cid, frames, K, w2c, tracks, pre_mask, cache, keys, recomputed, model_out, reporter):
+    """The depth model's agreement with the triangulated static points (cached;
+    :func:`engine.priors.depth_check.model_agreement`) with ``"used"``: whether its depth is used.
+    Runs the model into ``model_out`` when the check is not cached."""
+    keys["depth_check"] = k = prior_key("depth_check", cid, _depth_params(cfg), (keys["tracks"], _file_id(cfg.mask_path)))
+    z = _load(cache, "depth_check", k)
+    if z is not None:
+        record = json.loads(str(z["record"]))
+    else:
+        recomputed.append("depth_check")
+        model_out.append(_depth.model_predictions(frames, cfg.depth_model, cfg.depth_width, cfg.depth_output,
+                                                  reporter, cfg.depth_sidecar))
+        anchors = _depth.anchors_from_tracks(tracks, K, w2c, pre_mask, frames.shape[1:3], _check.MIN_ANCHORS)
+        record = _check.model_agreement(*model_out[0], anchors)
+        _save(cache, "depth_check", k, record=np.array(json.dumps(record)))
+    return {**record, "used": _check.model_is_usable(record)}

@@ -290,7 +290,7 @@ def robust_affine(pred, target, iters=10):
 
 def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=None, dynamic=None, tracks=None,
                    max_width=320, min_anchors=20, reporter=None, moving_fill="surround", output=None,
-                   predictions=None):
+                   predictions=None, settings=None):
     """Dense metric depth for every frame.
 
     Parameters
@@ -306,6 +306,8 @@ def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=No
         sidecar's ``output``, else 'inverse')
     predictions : ``(pred [F,H,W], kind)`` from :func:`model_predictions`, onnx backend: align
         these instead of running the model again (the second depth pass of compute_priors)
+    settings : dict or None, onnx backend: sidecar keys laid over the model's sidecar file
+        (:func:`engine.priors.onnx_util.model_settings`)
 
     Returns
     -------
@@ -345,21 +347,21 @@ def estimate_depth(frames, K, w2c, backend="sparse", model_path=None, anchors=No
     if backend != "onnx":
         raise InputError(f"unknown depth backend {backend!r}.", fix="Use 'sparse' or 'onnx'.")
     if predictions is None:
-        predictions = model_predictions(frames, model_path, max_width, output, reporter)
+        predictions = model_predictions(frames, model_path, max_width, output, reporter, settings)
     elif reporter is not None:
         reporter.progress("depth", F, F)
     return _align_predictions(*predictions, anchors, median)
 
 
-def model_predictions(frames, model_path, max_width=320, output=None, reporter=None):
+def model_predictions(frames, model_path, max_width=320, output=None, reporter=None, settings=None):
     """Run an ONNX depth model on every frame -> ``(pred float32 [F,H,W], kind)``: the raw output
     resized to the frames, and ``kind`` 'inverse' (larger = nearer) or 'depth' (larger = farther)
-    from ``output`` or the model's sidecar."""
+    from ``output`` or the model's settings (its sidecar, ``settings`` laid over it)."""
     import cv2
 
     F, H, W, _ = frames.shape
     sess = onnx_util.load_session(model_path)
-    side = onnx_util.read_sidecar(model_path)
+    side = onnx_util.model_settings(model_path, settings)
     name, layout, size, fixed = onnx_util.image_input_spec(sess, side, (384, 384))
     if "input_size" not in side and onnx_util.has_dynamic_hw(sess, layout):
         size = onnx_util.dynamic_input_size(H, W, side.get("input_width", max_width), side.get("size_multiple", 32))

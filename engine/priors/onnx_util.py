@@ -6,7 +6,9 @@ e.g. ``dinov2.onnx.json`` or ``dinov2.json``) overrides what is read from the gr
 applied to RGB in [0,1]), ``patch_size`` (ViT), ``output`` ("inverse"|"depth"),
 ``background_class``/``foreground_classes`` (segmenters), ``size_multiple`` and ``input_width``
 (models with dynamic H, W: the frame's aspect at ``input_width`` px, both sides rounded to a
-multiple of ``size_multiple``; see :func:`dynamic_input_size`).
+multiple of ``size_multiple``; see :func:`dynamic_input_size`). The same settings can be given
+without a file beside the model (a model in a read-only folder): :func:`model_settings` lays
+them over the sidecar's, :func:`parse_settings` reads them from a command line.
 """
 
 from __future__ import annotations
@@ -52,6 +54,43 @@ def read_sidecar(model_path) -> dict:
                 raise InputError("sidecar JSON must be an object.", cand)
             return data
     return {}
+
+
+#: the sidecar keys the priors read (model_settings refuses others: a typo would be ignored silently)
+SETTING_KEYS = ("input_size", "layout", "mean", "std", "patch_size", "output", "background_class",
+                "foreground_classes", "size_multiple", "input_width")
+
+
+def model_settings(model_path, given: dict | None = None) -> dict:
+    """The model's sidecar (:func:`read_sidecar`) with ``given`` laid over it, key by key."""
+    side = dict(read_sidecar(model_path))
+    if given:
+        unknown = sorted(set(given) - set(SETTING_KEYS))
+        if unknown:
+            raise InputError(f"unknown model setting(s) {', '.join(unknown)}.", model_path,
+                             f"Use only {', '.join(SETTING_KEYS)}.")
+        side.update(given)
+    return side
+
+
+def parse_settings(text: str, option: str = "--depth-sidecar") -> dict:
+    """Model settings from a command line: a JSON object, or the path of a JSON file holding one."""
+    path = Path(text)
+    source = None
+    if not text.lstrip().startswith("{") and path.is_file():
+        source, text = path, path.read_text()
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise InputError(f"{option} is not valid JSON ({exc}).", source,
+                         'Give a JSON object such as \'{"size_multiple": 64}\' or the path of a file holding one.') from exc
+    if not isinstance(data, dict):
+        raise InputError(f"{option} must be a JSON object.", source, 'Give e.g. \'{"size_multiple": 64}\'.')
+    unknown = sorted(set(data) - set(SETTING_KEYS))
+    if unknown:
+        raise InputError(f"{option}: unknown setting(s) {', '.join(unknown)}.", source,
+                         f"Use only {', '.join(SETTING_KEYS)}.")
+    return data
 
 
 def image_input_spec(session, sidecar: dict, default_size=(224, 224)):

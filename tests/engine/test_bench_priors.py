@@ -87,12 +87,14 @@ def test_prior_options_build_the_config(tmp_path):
     model.parent.mkdir(); model.write_bytes(b"x")
     args = build_parser().parse_args(["priors", "--flow-model", "raft.onnx", "--flow-width", "200",
                                       "--depth-model", str(model), "--depth-output", "depth",
-                                      "--depth-sidecar", '{"size_multiple": 64}', "--num-points", "500"])
-    cfg = bench.prior_config(args, tmp_path)
+                                      "--depth-sidecar", '{"size_multiple": 64}', "--num-points", "500",
+                                      "--depth-check", "off"])
+    cfg = bench.prior_config(args)
     assert (cfg.flow_backend, cfg.flow_model, cfg.flow_model_width, cfg.num_points) == ("onnx", "raft.onnx", 200, 500)
     assert cfg.depth_backend == "onnx" and cfg.depth_output == "depth"
-    assert Path(cfg.depth_model).parent == tmp_path and Path(cfg.depth_model).resolve() == model.resolve()
-    assert (tmp_path / "depth.onnx.json").read_text() == '{"size_multiple": 64}'
+    assert Path(cfg.depth_model) == model.resolve() and cfg.depth_sidecar == {"size_multiple": 64}
+    assert cfg.depth_check == "off"
+    assert sorted(p.name for p in model.parent.iterdir()) == ["depth.onnx"]  # nothing written beside the model
 
 
 @pytest.mark.slow

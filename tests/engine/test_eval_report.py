@@ -123,3 +123,14 @@ def test_report_names_what_gave_moving_objects_their_depth():
                         "flow": {"backend": "dis"}})
     assert rows[0][:3] == ["depth", "sparse; moving objects: contact, 1 hinge(s)", "weight-free"]
     assert rows[1][:3] == ["flow", "dis", "weight-free"]
+
+
+def test_report_says_a_depth_model_was_checked_or_set_aside():
+    from engine.report import _prior_rows
+
+    aside = _prior_rows({"depth": {"backend": "sparse", "moving_objects": "contact", "check": {"ratio": 1.14},
+                                   "set_aside": {"backend": "onnx", "model": "pydnet"}}})
+    assert aside[0][1].endswith("depth model pydnet set aside (its error at triangulated static points 1.14x a "
+                                "flat depth's)") and aside[0][2] == "weight-free"
+    kept = _prior_rows({"depth": {"backend": "onnx", "model": "dav2", "check": {"ratio": 0.41}}})
+    assert kept[0][1:3] == ["onnx; checked: error at triangulated static points 0.41x a flat depth's", "dav2"]

@@ -35,3 +35,12 @@ def test_training_width_beyond_the_clip_is_said(tmp_path, capsys):
     frames, _, _ = load_frames_at_width(clip, 500, Reporter(jsonl=True))
     assert frames.shape[2] == fx.W
     assert "wider than the clip (64 px)" in capsys.readouterr().out
+
+
+def test_depth_sidecar_option_feeds_the_prior_config(tmp_path):
+    clip = fx.manifest(tmp_path / "m")
+    base = ["train", str(clip), "--out", str(tmp_path / "o"), "--depth-model", "pydnet.onnx"]
+    args = build_parser().parse_args(base + ["--depth-sidecar", '{"size_multiple": 64, "std": [1, 1, 1]}'])
+    cfg = prior_config_from_args(args)
+    assert cfg.depth_backend == "onnx" and cfg.depth_sidecar == {"size_multiple": 64, "std": [1, 1, 1]}
+    assert prior_config_from_args(build_parser().parse_args(base)).depth_sidecar is None

@@ -16,7 +16,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from engine.errors import InputError
 from engine.priors import estimate_depth
-from engine.priors.onnx_util import dynamic_input_size
+from engine.priors.onnx_util import dynamic_input_size, parse_settings
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 PYDNET = SHARED / "models" / "pydnet_mobile2019_depth.onnx"
@@ -95,6 +95,41 @@ def test_larger_is_farther_model_aligned_to_anchors(tmp_path):
                                                        "output": "depth"}))
     dep2, _ = estimate_depth(frames, K, w2c, "onnx", str(model), anchors=anchors, max_width=150)
     assert np.allclose(dep2, dep)
+
+
+def test_settings_given_without_a_sidecar_file_match_the_file(tmp_path):
+    # a model in a read-only folder: the same keys given to the priors instead of a file beside it
+    model = _tiny_depth(tmp_path / "d.onnx")
+    settings = {"size_multiple": 64, "mean": [0, 0, 0], "std": [1, 1, 1], "output": "depth"}
+    frames, gt, anchors = _clip(F=2)
+    K, w2c = _K(*gt.shape)
+    given, _ = estimate_depth(frames, K, w2c, "onnx", str(model), anchors=anchors, max_width=150, settings=settings)
+    (tmp_path / "d.onnx.json").write_text(json.dumps(settings))
+    from_file, _ = estimate_depth(frames, K, w2c, "onnx", str(model), anchors=anchors, max_width=150)
+    assert np.array_equal(given, from_file)
+    # laid over the file key by key: the given output wins
+    inv, _ = estimate_depth(frames, K, w2c, "onnx", str(model), anchors=anchors, max_width=150,
+                            settings={"output": "inverse"})
+    assert not np.allclose(inv, from_file)
+    with pytest.raises(InputError) as e:
+        estimate_depth(frames, K, w2c, "onnx", str(model), anchors=anchors, settings={"size_multipel": 64})
+    assert "size_multipel" in str(e.value) and "d.onnx" in str(e.value)
+
+
+def test_settings_from_the_command_line(tmp_path):
+    assert parse_settings('{"size_multiple": 64, "mean": [0, 0, 0]}') == {"size_multiple": 64, "mean": [0, 0, 0]}
+    f = tmp_path / "pydnet.json"
+    f.write_text('{"size_multiple": 64}')
+    assert parse_settings(str(f)) == {"size_multiple": 64}
+    for bad, words in (("{size_multiple: 64}", "not valid JSON"), ("[64]", "must be a JSON object"),
+                       ('{"multiple": 64}', "unknown setting")):
+        with pytest.raises(InputError) as e:
+            parse_settings(bad)
+        assert words in str(e.value) and "--depth-sidecar" in str(e.value)
+    f.write_text("{oops")
+    with pytest.raises(InputError) as e:
+        parse_settings(str(f))
+    assert "pydnet.json" in str(e.value)
 
 
 def test_unknown_depth_output_is_one_clear_error(tmp_path):
