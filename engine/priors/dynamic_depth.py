@@ -246,12 +246,14 @@ def _with_blob_tracks(tracks, depth, dynamic, hinges, K, w2c, record, reporter):
     if hinges is not None:
         uv, z = hinges.project(K, w2c)
         exclude = np.where((z > 0)[..., None], uv, np.nan)  # [F, M, 2]
-    more = blob_tracks(dynamic, depth, exclude_uv=exclude, flow_xy=tracks.xy, flow_vis=tracks.visible)
+    more = blob_tracks(dynamic, depth, exclude_uv=exclude, flow_xy=tracks.xy, flow_vis=tracks.visible,
+                       focal=np.asarray(K)[:, 0, 0])
     record["blob_tracks"] = 0 if more is None else int(len(more.xy))
     if more is None:
         return tracks
-    reporter.log(f"moving objects: {len(more.xy)} tracks along compact blobs' paths (median "
-                 f"{int(np.median(more.visible.sum(1)))} frames long)")
+    turning = len(more.xy) if more.translation_only is None else int((~more.translation_only).sum())
+    reporter.log(f"moving objects: {len(more.xy)} tracks along compact blobs' paths ({turning} turning with "
+                 f"the blob; median {int(np.median(more.visible.sum(1)))} frames long)")
     return concat_tracks(tracks, more)
 
 

@@ -64,8 +64,8 @@ class Tracks:
 def tracks_from_paths(paths, width: int, height: int, min_frames: int, translation_only: bool = False) -> Tracks | None:
     """Tracks from seeded paths (:mod:`engine.priors.hinge_tracks`, :mod:`engine.priors.blob_tracks`).
 
-    ``paths``: ``(xy [P, F, 2] px, seen [P, F] or [F] bool, depth [F] camera depth, seed frame)``
-    per seed frame; a sample is visible where seen, finite and inside the ``width`` x ``height``
+    ``paths``: ``(xy [P, F, 2] px, seen [P, F] or [F] bool, depth [F] or [P, F] camera depth, seed
+    frame)`` per seed frame; a sample is visible where seen, finite and inside the ``width`` x ``height``
     image, and carries the frame's depth; tracks visible in fewer than ``min_frames`` frames are
     dropped. Returns :class:`Tracks` (``query_frame`` the seed frame, ``translation_only`` set
     when asked) or None when none is left.
@@ -76,7 +76,7 @@ def tracks_from_paths(paths, width: int, height: int, min_frames: int, translati
         vis &= (xy[..., 0] >= 0) & (xy[..., 0] < width) & (xy[..., 1] >= 0) & (xy[..., 1] < height)
         xy_all.append(np.where(vis[..., None], xy, 0.0).astype(np.float32))
         vis_all.append(vis)
-        z_all.append(np.where(vis, np.asarray(depth)[None], np.nan).astype(np.float32))
+        z_all.append(np.where(vis, np.broadcast_to(depth, vis.shape), np.nan).astype(np.float32))
         q_all.append(np.full(len(xy), seed, np.int64))
     if not xy_all:
         return None
