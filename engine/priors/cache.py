@@ -37,8 +37,8 @@ from . import depth as _depth
 from . import depth_check as _check
 from . import flow as _flow
 from . import motion as _motion
-from . import precomputed as _pre
 from . import onnx_util as _onnx
+from . import precomputed as _pre
 from . import resting as _resting
 from . import tokens as _tokens
 from . import tracks as _tracks
