@@ -26,8 +26,9 @@ none.
 
 The tracks carry their own camera depth: the median of the depth map over the blob, frame by
 frame, smoothed over the path (:func:`_smooth_log`; the per-track depth gives a track one depth
-for its whole life). Those of a blob whose turn is unknown (no flow, or no step with enough of
-its tracks) are flagged ``translation_only``: the node rotations are fitted without them.
+for its whole life). Those of a blob whose turn is unknown (no flow, no step with enough of its
+tracks, or fits no better than the flow's noise) are flagged ``translation_only``: the node
+rotations are fitted without them.
 """
 
 from __future__ import annotations
@@ -172,9 +173,10 @@ def blob_tracks(dynamic: np.ndarray, depth: np.ndarray, threshold: float = 0.5, 
         its tracks are points of that sphere, seen while they face the camera (their depth
         along the sphere below ``-front`` radii); a path whose turn no step shows, or whose fits
         explain the tracks no better than the noise (:func:`~engine.priors.blob_turn.turn_path`),
-        keeps the translation alone. focal : float [F] or None, the focal length (px): a turned track's depth
-        is then its point's on that sphere (the blob's median depth is that of a point 0.71 radii
-        in front of the centre: the median over a hemisphere's disc), else the blob's.
+        keeps the translation alone.
+    focal : float [F] or None: the focal length (px); a turned track's depth is then its point's on
+        that sphere (the blob's median depth taken as that of a point 0.71 radii in front of the
+        centre, the median over a hemisphere's disc), else the blob's.
 
     Returns
     -------
