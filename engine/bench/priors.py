@@ -98,7 +98,7 @@ def add_arguments(parser) -> None:
                         help="what --depth-model predicts (default: its sidecar, else inverse)")
     parser.add_argument("--depth-check", choices=("auto", "off"), default=None,
                         help="check --depth-model against the triangulated static points and set it aside when it "
-                             "explains them no better than a flat depth (auto, the engine's default) or use it "
+                             "explains them less than 10%% better than a flat depth (auto, the engine's default) or use it "
                              "whatever it scores (off: measures the model itself)")
     parser.add_argument("--depth-sidecar", metavar="JSON",
                         help="input settings for --depth-model, as its sidecar JSON's keys (a JSON object or a file; "

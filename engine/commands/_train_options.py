@@ -59,7 +59,7 @@ def add_clip_options(parser):
                           "\"std\": [1,1,1]}' (PyDNet: RGB/255, sides multiples of 64)")
     pri.add_argument("--depth-check", choices=("auto", "off"),
                      help="--depth-model is first scored against the triangulated static points: one that "
-                          "explains them no better than a flat depth is set aside for the weight-free depth "
+                          "explains them less than 10%% better than a flat depth is set aside for the weight-free depth "
                           "(default auto; off: use the model whatever it scores)")
     pri.add_argument("--depth-path", help="precomputed depth (.npy [F,H,W] or folder of 16-bit PNG)")
     pri.add_argument("--mask-path", help="precomputed masks (folder of PNG)")

@@ -95,7 +95,7 @@ class PriorConfig:
     # sidecar file, for a model without one (engine.priors.onnx_util.model_settings)
     depth_sidecar: dict | None = None
     # ONNX depth: checked against the triangulated static points first ('auto'): a model that
-    # explains them no better than a flat depth is set aside for the weight-free depth
+    # explains them less than 10% better than a flat depth is set aside for the weight-free depth
     # (engine/priors/depth_check.py); 'off' uses the model whatever it says
     depth_check: str = "auto"
     mask_backend: str = "motion"

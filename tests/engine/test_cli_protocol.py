@@ -25,6 +25,21 @@ def test_help_lists_commands():
     assert "selftest" in out.stdout and "version" in out.stdout
 
 
+def test_every_command_and_bench_formats_its_help():
+    """argparse formats a help text only when asked: a stray '%' in one (it takes it for a
+    format field) breaks `--help` of that command alone."""
+    import argparse
+
+    from engine.bench.__main__ import build_parser as bench_parser
+    from engine.cli import build_parser
+
+    for parser in (build_parser(), bench_parser()):
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        assert subs and subs[0].choices
+        for name, sub in subs[0].choices.items():
+            assert sub.format_help(), name
+
+
 def test_selftest_reports_versions_as_json_lines():
     out = _engine("selftest", "--jsonl")
     assert out.returncode == 0, out.stderr
