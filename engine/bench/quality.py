@@ -80,6 +80,14 @@ def add_arguments(parser):
                         help="comma list of training seeds (e.g. 0,1,2): every configuration trains once per seed "
                              "and a 'mean' row per scene and configuration follows (psnr_std = spread over seeds); "
                              "differences between configurations below that spread are noise")
+    parser.add_argument("--flow-backend", choices=("auto", "dis", "onnx"),
+                        help="the trainings' optical flow (engine train --flow-backend; auto: the shipped "
+                             "RAFT-small fused with DIS); the scenes' bundles and priors caches get a tag of their own")
+    parser.add_argument("--depth-model", help="the trainings' ONNX depth model (engine train --depth-model), with "
+                                              "--depth-output, --depth-sidecar and --depth-check as there")
+    parser.add_argument("--depth-output", choices=("inverse", "depth"))
+    parser.add_argument("--depth-sidecar", metavar="JSON")
+    parser.add_argument("--depth-check", choices=("auto", "off"))
     parser.add_argument("--oracle", default="",
                         help="generated scenes only: train on ground-truth priors instead of the weight-free ones, "
                              "a comma list of depth,mask,tracks (engine/bench/oracle.py); separates what the method "
@@ -203,6 +211,32 @@ def run_one(clip, name: str, init: str, motion: str, work: Path, steps=None, thr
             "peak_rss_mb": round(res["peak_rss_mb"], 1)}
 
 
+#: engine train's prior options the bench passes on (bench option -> train option value)
+LEARNED_PRIOR_OPTIONS = ("flow_backend", "depth_model", "depth_output", "depth_sidecar", "depth_check")
+
+
+def learned_prior_options(args) -> dict:
+    """The prior options given to the bench, as ``{option name: value}`` for ``engine train``
+    (:func:`train_subprocess` turns ``depth_model`` into ``--depth-model``)."""
+    return {k: getattr(args, k) for k in LEARNED_PRIOR_OPTIONS if getattr(args, k, None)}
+
+
+def learned_prior_tag(options: dict) -> str:
+    """A short name for a run's prior options (its bundles' and caches' folder suffix), e.g.
+    ``flow-auto`` or ``depth-pydnet_out-depth_side_check-off``."""
+    short = {"flow_backend": "flow", "depth_model": "depth", "depth_output": "out", "depth_sidecar": "side",
+             "depth_check": "check"}
+    parts = []
+    for key, value in options.items():
+        if key == "depth_model":
+            parts.append(f"depth-{Path(str(value)).stem}")
+        elif key == "depth_sidecar":
+            parts.append("side")
+        else:
+            parts.append(f"{short[key]}-{value}")
+    return "_".join(parts)
+
+
 def run(args) -> list[dict]:
     work = Path(args.work) if args.work else Path(tempfile.gettempdir()) / "motion_splats_bench" / "quality"
     work.mkdir(parents=True, exist_ok=True)
@@ -229,6 +263,11 @@ def run(args) -> list[dict]:
             priors[name] = write_oracle_priors(clip, work / tag / name, oracle)
         scenes = [(f"{name}+{tag}", clip) for name, clip in scenes]  # own bundles and priors cache
         priors = {f"{name}+{tag}": p for name, p in priors.items()}
+    learned = learned_prior_options(args)
+    if learned:
+        tag = learned_prior_tag(learned)
+        priors = {f"{name}+{tag}": {**priors.get(name, {}), **learned} for name, _ in scenes}
+        scenes = [(f"{name}+{tag}", clip) for name, clip in scenes]  # own bundles and priors cache
     seeds = [int(x) for x in args.train_seeds.split(",") if x.strip()] or [None]
     jobs = [(name, clip, init, motion, seed) for name, clip in scenes for init, motion in configs for seed in seeds]
 

@@ -79,3 +79,37 @@ def test_bench_quality_rows(tmp_path):
     assert row["psnr_bundle"] == pytest.approx(row["psnr"], abs=1e-3)
     assert (tmp_path / "work" / "oracle_depth_mask_tracks" / "clip" / "tracks.npz").is_file()
     assert len(list((tmp_path / "work" / "cache").iterdir())) == 2
+
+
+def test_learned_prior_options_reach_engine_train_with_a_tag_of_their_own(tmp_path, monkeypatch):
+    """`--flow-backend` / `--depth-*` are passed to every training as engine train's own options,
+    and the scenes' bundles and priors caches get a tag of their own (a weight-free run's cache is
+    not reused)."""
+    from engine.bench import quality as Q
+    from engine.bench.__main__ import build_parser
+
+    args = build_parser().parse_args(["quality", str(tmp_path / "clip"), "--configs", "mani+spline", "--work",
+                                      str(tmp_path / "w"), "--flow-backend", "auto", "--depth-model",
+                                      "/m/pydnet.onnx", "--depth-sidecar", '{"size_multiple": 64}'])
+    seen = []
+
+    def fake_run_one(clip, name, init, motion, work, *a):
+        seen.append((name, a[4]))  # (scene name, priors)
+        return {"scene": name, "init": init, "motion": motion, "train_seed": None}
+
+    monkeypatch.setattr(Q, "run_one", fake_run_one)
+    Q.run(args)
+    name, priors = seen[0]
+    assert name == "clip+flow-auto_depth-pydnet_side"
+    assert priors == {"flow_backend": "auto", "depth_model": "/m/pydnet.onnx", "depth_sidecar": '{"size_multiple": 64}'}
+    # and as command-line options of engine train
+    cmds = []
+    monkeypatch.setattr(Q, "run_child", lambda cmd, cwd: cmds.append(cmd) or ("", "", 1, 0.0, 0.0))
+    with pytest.raises(RuntimeError):
+        Q.train_subprocess(tmp_path / "clip", tmp_path / "o", "mani", "spline", tmp_path / "c", priors=priors)
+    cmd = cmds[0]
+    assert cmd[cmd.index("--flow-backend") + 1] == "auto" and cmd[cmd.index("--depth-model") + 1] == "/m/pydnet.onnx"
+    assert cmd[cmd.index("--depth-sidecar") + 1] == '{"size_multiple": 64}'
+    # without them: no tag, no options
+    plain = build_parser().parse_args(["quality", str(tmp_path / "clip"), "--work", str(tmp_path / "w")])
+    assert Q.learned_prior_options(plain) == {}
