@@ -92,3 +92,13 @@ def quat_from_axis_angle(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tenso
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     half = 0.5 * angle
     return torch.cat([torch.cos(half).unsqueeze(-1), torch.sin(half).unsqueeze(-1) * axis], dim=-1)
+
+
+def quat_to_rotation_vector(q: torch.Tensor) -> torch.Tensor:
+    """Axis times angle ``[..., 3]`` (radians, the angle in ``[0, pi]``) of unit quaternions
+    ``[..., 4]``; the inverse of :func:`quat_from_axis_angle` with ``angle = |v|``."""
+    q = torch.where(q[..., :1] < 0, -q, q)  # q and -q are one rotation: take the short way round
+    s = q[..., 1:].norm(dim=-1, keepdim=True)
+    angle = 2.0 * torch.atan2(s, q[..., :1])
+    # angle / s -> 2 as the rotation vanishes (sin(a/2) ~ a/2)
+    return q[..., 1:] * torch.where(s > 1e-12, angle / s.clamp_min(1e-12), torch.full_like(s, 2.0))

@@ -32,8 +32,10 @@ turned, its scene's node trajectories came out worse (ratio 0.94 -> 0.98; docs/b
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from ..geometry.poses import kabsch_rotation
+from ..geometry.quaternion import quat_from_axis_angle, quat_from_matrix, quat_to_matrix, quat_to_rotation_vector
 
 
 def sphere_points(offset: np.ndarray) -> np.ndarray:
@@ -45,21 +47,15 @@ def sphere_points(offset: np.ndarray) -> np.ndarray:
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Axis times angle of rotations ``R [..., 3, 3]`` -> ``[..., 3]`` (angles below pi)."""
-    angle = np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0))
-    axis = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    s = 2.0 * np.sin(angle)[..., None]
-    return np.where(s > 1e-9, axis / np.where(s > 1e-9, s, 1.0) * angle[..., None], 0.0)
+    """Axis times angle of rotations ``R [..., 3, 3]`` -> ``[..., 3]`` (engine/geometry/quaternion.py)."""
+    q = quat_from_matrix(torch.as_tensor(np.asarray(R), dtype=torch.float64))
+    return quat_to_rotation_vector(q).numpy()
 
 
 def _rotmat(v: np.ndarray) -> np.ndarray:
-    """Rotations ``[..., 3, 3]`` from axis-times-angle ``v [..., 3]`` (Rodrigues)."""
-    angle = np.linalg.norm(v, axis=-1)[..., None, None]
-    k = v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
-    zero = np.zeros(v.shape[:-1])
-    kx = np.stack([np.stack([zero, -k[..., 2], k[..., 1]], -1), np.stack([k[..., 2], zero, -k[..., 0]], -1),
-                   np.stack([-k[..., 1], k[..., 0], zero], -1)], -2)
-    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * (kx @ kx)
+    """Rotations ``[..., 3, 3]`` from axis-times-angle ``v [..., 3]`` (engine/geometry/quaternion.py)."""
+    v = torch.as_tensor(np.asarray(v), dtype=torch.float64)
+    return quat_to_matrix(quat_from_axis_angle(v, v.norm(dim=-1))).numpy()
 
 
 def step_turns(labels: list, label: np.ndarray, centre: np.ndarray, radius: np.ndarray, on: np.ndarray,

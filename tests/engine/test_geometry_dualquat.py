@@ -65,6 +65,18 @@ def _np_dqb(R, t, idx, w):
     return np.array(Rs), np.array(ts)
 
 
+def test_rotation_vector_round_trip_matches_scipy():
+    from scipy.spatial.transform import Rotation
+
+    v = torch.tensor([[0.1, -0.2, 0.3], [0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 1e-9, 0.0]], dtype=torch.float64)
+    q = quaternion.quat_from_axis_angle(v, v.norm(dim=-1))
+    torch.testing.assert_close(quaternion.quat_to_rotation_vector(q), v)
+    torch.testing.assert_close(quaternion.quat_to_rotation_vector(-q), v)  # the other sign, one rotation
+    R = Rotation.random(16, random_state=0)
+    got = quaternion.quat_to_rotation_vector(quaternion.quat_from_matrix(torch.as_tensor(R.as_matrix())))
+    np.testing.assert_allclose(got.numpy(), R.as_rotvec(), atol=1e-10)
+
+
 def test_dq_blend_identical_transforms_returns_that_transform():
     g = torch.Generator().manual_seed(1)
     q = _rand_quats(1, g)
