@@ -211,8 +211,11 @@ def run_one(clip, name: str, init: str, motion: str, work: Path, steps=None, thr
             "peak_rss_mb": round(res["peak_rss_mb"], 1)}
 
 
-#: engine train's prior options the bench passes on (bench option -> train option value)
-LEARNED_PRIOR_OPTIONS = ("flow_backend", "depth_model", "depth_output", "depth_sidecar", "depth_check")
+#: engine train's prior options the bench passes on, each with its part of the scenes' tag
+_PRIOR_TAGS = {"flow_backend": lambda v: f"flow-{v}", "depth_model": lambda v: f"depth-{Path(str(v)).stem}",
+               "depth_output": lambda v: f"out-{v}", "depth_sidecar": lambda v: "side",
+               "depth_check": lambda v: f"check-{v}"}
+LEARNED_PRIOR_OPTIONS = tuple(_PRIOR_TAGS)
 
 
 def learned_prior_options(args) -> dict:
@@ -224,17 +227,7 @@ def learned_prior_options(args) -> dict:
 def learned_prior_tag(options: dict) -> str:
     """A short name for a run's prior options (its bundles' and caches' folder suffix), e.g.
     ``flow-auto`` or ``depth-pydnet_out-depth_side_check-off``."""
-    short = {"flow_backend": "flow", "depth_model": "depth", "depth_output": "out", "depth_sidecar": "side",
-             "depth_check": "check"}
-    parts = []
-    for key, value in options.items():
-        if key == "depth_model":
-            parts.append(f"depth-{Path(str(value)).stem}")
-        elif key == "depth_sidecar":
-            parts.append("side")
-        else:
-            parts.append(f"{short[key]}-{value}")
-    return "_".join(parts)
+    return "_".join(_PRIOR_TAGS[key](value) for key, value in options.items())
 
 
 def run(args) -> list[dict]:
