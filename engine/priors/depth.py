@@ -380,6 +380,26 @@ def model_predictions(frames, model_path, max_width=320, output=None, reporter=N
     return pred, kind
 
 
+def at_anchors(image: np.ndarray, anchors: np.ndarray) -> np.ndarray:
+    """``image [H, W]`` at the pixels of ``anchors [A, 3]`` (u, v, depth; nearest, clamped) -> ``[A]``."""
+    h, w = image.shape
+    return image[np.clip(anchors[:, 1].astype(int), 0, h - 1), np.clip(anchors[:, 0].astype(int), 0, w - 1)]
+
+
+def fit_alignment(pred_at: np.ndarray, depth_at: np.ndarray, kind: str) -> tuple[float, float]:
+    """Scale and shift ``(s, t)`` of a model's output at some anchors ``pred_at [A]`` onto their
+    depths ``depth_at [A]``, robust affine in the model's ``kind`` of value ('inverse': fitted to
+    1 / depth)."""
+    target = 1.0 / depth_at if kind == "inverse" else depth_at
+    return robust_affine(np.asarray(pred_at, np.float64), np.asarray(target, np.float64))
+
+
+def aligned_depth(pred: np.ndarray, s: float, t: float, kind: str) -> np.ndarray:
+    """Depth from a model's output ``pred`` and its alignment ``(s, t)`` (:func:`fit_alignment`)."""
+    val = s * pred + t
+    return 1.0 / np.maximum(val, 1e-6) if kind == "inverse" else val
+
+
 def _align_predictions(pred, kind, anchors, median):
     """Each frame's model output ``pred [F,H,W]`` fitted to its anchors (robust affine, in the
     model's ``kind`` of value) -> (depth [F,H,W], confidence [F,H,W])."""
@@ -388,17 +408,12 @@ def _align_predictions(pred, kind, anchors, median):
     for f in range(F):
         a = anchors[f]
         if len(a) >= 3:
-            pa = pred[f][np.clip(a[:, 1].astype(int), 0, H - 1), np.clip(a[:, 0].astype(int), 0, W - 1)]
-            tgt = 1.0 / a[:, 2] if kind == "inverse" else a[:, 2]
-            s, t = robust_affine(pa.astype(np.float64), tgt.astype(np.float64))
+            s, t = fit_alignment(at_anchors(pred[f], a), a[:, 2], kind)
             c = 0.9
         else:
             ref = 1.0 / median if kind == "inverse" else median
             s, t = ref / max(float(np.median(pred[f])), 1e-9), 0.0
             c = 0.2
-        val = s * pred[f] + t
-        if kind == "inverse":
-            val = 1.0 / np.maximum(val, 1e-6)
-        depth[f] = np.clip(val, 1e-3 * median, 1e3 * median)
+        depth[f] = np.clip(aligned_depth(pred[f], s, t, kind), 1e-3 * median, 1e3 * median)
         conf[f] = c
     return depth, conf

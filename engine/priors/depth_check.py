@@ -23,7 +23,7 @@ import dataclasses
 
 import numpy as np
 
-from .depth import robust_affine
+from .depth import aligned_depth, at_anchors, fit_alignment
 
 #: a model is used when its held-out anchor error is below this fraction of a flat depth's. Not
 #: 1.0: a model whose output is noise is fitted with a scale near 0, which leaves its shift, a
@@ -32,12 +32,6 @@ MAX_ERROR_RATIO = 0.9
 #: frames need this many anchors to be checked, and a clip this many checked frames
 MIN_ANCHORS = 20
 MIN_FRAMES = 3
-
-
-def _sample(pred: np.ndarray, anchors: np.ndarray) -> np.ndarray:
-    """``pred [H, W]`` at the anchors' pixels ``anchors [A, 3]`` (u, v, depth) -> ``[A]``."""
-    h, w = pred.shape
-    return pred[np.clip(anchors[:, 1].astype(np.int64), 0, h - 1), np.clip(anchors[:, 0].astype(np.int64), 0, w - 1)]
 
 
 def model_agreement(pred: np.ndarray, kind: str, anchors: list, min_anchors: int = MIN_ANCHORS,
@@ -69,13 +63,11 @@ def model_agreement(pred: np.ndarray, kind: str, anchors: list, min_anchors: int
         a = a[np.isfinite(a).all(1) & (a[:, 2] > 0)]
         if len(a) < min_anchors:
             continue
-        p = _sample(pred[f], a).astype(np.float64)
-        target = 1.0 / a[:, 2] if kind == "inverse" else a[:, 2]
+        p = at_anchors(pred[f], a).astype(np.float64)
         order = rng.permutation(len(a))
         fit, test = order[::2], order[1::2]
-        s, t = robust_affine(p[fit], target[fit])
-        val = s * p[test] + t
-        z = 1.0 / np.maximum(val, 1e-9) if kind == "inverse" else val
+        s, t = fit_alignment(p[fit], a[fit, 2], kind)  # as estimate_depth aligns the model
+        z = aligned_depth(p[test], s, t, kind)
         truth = a[test, 2]
         err.append(np.median(np.abs(z - truth) / truth))
         flat.append(np.median(np.abs(np.median(a[fit, 2]) - truth) / truth))
