@@ -148,6 +148,10 @@ class TrainConfig:
     frame_order: str = "auto"            # the frame each step draws (engine/train/frame_order.py): epochs | uniform |
                                          # auto (epochs when the moving Gaussians have lifespans, else uniform)
     warmup_static_steps: int = 50        # first steps train appearance with motion frozen
+    track_frames: int = 5                # frames whose 2D tracks each step's track term scores: the rendered one and
+                                         # track_frames - 1 training frames drawn at random, each weighted by
+                                         # loss.track (the photometric step moves only the keys near its own frame;
+                                         # tracks at other times hold the rest of each path: docs/benchmarks.md)
     lr_means: float = 1.6e-4             # relative to scene extent
     lr_means_final: float = 1.6e-6
     lr_quats: float = 1e-3
@@ -217,7 +221,7 @@ class TrainConfig:
             if isinstance(value, float) and not math.isfinite(value):
                 bad(f.name, f"must be a finite number, got {value!r}")
         for key in ("width", "steps", "num_nodes", "bind_k", "gaussians_per_frame", "init_keyframes",
-                    "max_gaussians", "log_every", "densify_every"):
+                    "max_gaussians", "log_every", "densify_every", "track_frames"):
             if getattr(self, key) < 1:
                 bad(key, "must be >= 1")
         for key in ("max_frames", "num_keys", "rebind_every", "checkpoint_every", "opacity_reset_every",
@@ -341,7 +345,7 @@ def _loss_from_dict(data: Any, source: str | None) -> LossWeights:
 LIMITS: dict[str, int] = {"width": 8192, "steps": 10_000_000, "num_nodes": 200_000, "num_keys": 10_000,
                           "bind_k": 64, "gaussians_per_frame": 2_000_000, "init_keyframes": 1000,
                           "max_gaussians": 20_000_000, "max_frames": 100_000,
-                          "node_add_max": 100_000, "lifespan_seed_factor": 100}
+                          "node_add_max": 100_000, "lifespan_seed_factor": 100, "track_frames": 1000}
 
 PRESETS: dict[str, dict[str, Any]] = {
     "preview": {},

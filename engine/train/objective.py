@@ -171,17 +171,9 @@ class Objective:
         if out.extra is not None:  # a mask step (see the trainer's _loss)
             terms["mask"] = w.mask * L.mask_loss(out.alpha, out.extra, d.fg[f])
         if self.track_canon is not None and w.track > 0 and step >= self.cfg.warmup_static_steps:
-            vis = self.track_vis[self.track_ids, f]
-            if vis.any():
-                sel = torch.nonzero(vis).squeeze(1)
-                if len(sel) > 1024:
-                    sel = sel[torch.randperm(len(sel), generator=self.gen)[:1024].to(sel.device)]
-                x = m.deform_points(self.track_canon[sel], self.track_idx[sel], self.track_w[sel], t,
-                                    dq_nodes=dq_nodes)
-                target_uv = d.tracks_xy[self.track_ids[sel], f]
-                # in % of the image width (Huber, linear beyond 0.05 %): at the width of the
-                # image the term vanished next to the photometric one (a 10 px error cost 1e-4)
-                terms["track"] = w.track * track_term(x, d.K[f], d.w2c[f], target_uv, float(d.width) / 100.0)
+            track = self.track_terms(m, f, t, dq_nodes)
+            if track is not None:
+                terms["track"] = w.track * track
         if w.on_mask > 0 and step >= self.cfg.warmup_static_steps:
             on_mask = self.on_mask(m, f, t, means_t, dq_nodes, shown)
             if on_mask is not None:
@@ -218,6 +210,43 @@ class Objective:
             metrics = {k: float(v) for k, v in terms.items()}
             metrics["psnr"] = float(L.psnr_from_mse(mse))  # L.psnr of the clamped render
         return loss, metrics, out
+
+    # ---------------------------------------------------------------- tracks over the clip
+    def track_terms(self, model: DynamicScene, f: int, t: float, dq_nodes: torch.Tensor) -> torch.Tensor | None:
+        """The track term (unweighted) of frame ``f`` (time ``t``, node transforms ``dq_nodes [N, 8]``)
+        plus that of ``cfg.track_frames - 1`` training frames drawn with the run's generator, summed;
+        None where none of them sees a supervised track.
+
+        Why the other frames: a step renders one frame, and its photometric gradient moves only the
+        spline keys near that frame's time, so over the run each key random-walks by about the step
+        size (docs/benchmarks.md "What caps the moving regions near 20 dB"). The tracks at a few other
+        times each step hold the rest of every path (docs/benchmarks.md "Tracks at other times").
+        Each other frame costs one node-state evaluation and the deformation of up to 1024 track
+        points.
+        """
+        d = self.data
+        frames = [(f, t, dq_nodes)]
+        if self.cfg.track_frames > 1:
+            tr = d.train_idx
+            draw = torch.randint(len(tr), (self.cfg.track_frames - 1,), generator=self.gen)
+            for g in tr[draw.to(tr.device)].tolist():
+                tg = float(d.times[g])
+                frames.append((g, tg, None))
+        total = None
+        for g, tg, dq in frames:
+            sel = torch.nonzero(self.track_vis[self.track_ids, g]).squeeze(1)
+            if len(sel) == 0:
+                continue
+            if len(sel) > 1024:
+                sel = sel[torch.randperm(len(sel), generator=self.gen)[:1024].to(sel.device)]
+            if dq is None:
+                dq = model.node_state_dq(tg)[2]
+            x = model.deform_points(self.track_canon[sel], self.track_idx[sel], self.track_w[sel], tg, dq_nodes=dq)
+            # in % of the image width (Huber, linear beyond 0.05 %): at the width of the
+            # image the term vanished next to the photometric one (a 10 px error cost 1e-4)
+            term = track_term(x, d.K[g], d.w2c[g], d.tracks_xy[self.track_ids[sel], g], float(d.width) / 100.0)
+            total = term if total is None else total + term
+        return total
 
     # ---------------------------------------------------------------- dynamic Gaussians on the mask
     def on_mask(self, model: DynamicScene, f: int, t: float, means_t: torch.Tensor, dq_nodes: torch.Tensor,
