@@ -221,7 +221,7 @@ def _prior_rows(priors: dict) -> list[list]:
                 found += f", {src['blob_tracks']} tracks along compact blobs' paths"
             backend = f"{backend}; moving objects: {src['moving_objects']}{found}"
         check = src.get("check") or {}
-        if src.get("set_aside"):  # a depth model that explained the static points no better than flat
+        if src.get("set_aside"):  # a depth model less than 10% better than flat at the static points
             backend += (f"; depth model {src['set_aside'].get('model')} set aside (its error at triangulated "
                         f"static points {check.get('ratio', float('nan')):.2f}x a flat depth's)")
         elif check.get("ratio") is not None:

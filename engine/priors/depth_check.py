@@ -81,8 +81,8 @@ def model_agreement(pred: np.ndarray, kind: str, anchors: list, min_anchors: int
 
 
 def model_is_usable(agreement: dict, max_ratio: float = MAX_ERROR_RATIO, min_frames: int = MIN_FRAMES) -> bool:
-    """True unless enough frames were checked and the model explained their anchors no better
-    than a flat depth (:func:`model_agreement`)."""
+    """True unless enough frames were checked and the model's error at their anchors is not below
+    ``max_ratio`` times a flat depth's (:func:`model_agreement`)."""
     if agreement.get("frames", 0) < min_frames or agreement.get("ratio") is None:
         return True
     return agreement["ratio"] < max_ratio
