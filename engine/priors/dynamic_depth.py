@@ -1,5 +1,5 @@
-"""A depth for moving objects that stays with them: per-track constant depth, spread over
-the moving pixels of every frame.
+"""A depth for moving objects that stays with them: one depth per track, spread over the
+moving pixels of every frame.
 
 The weight-free depth (:func:`engine.priors.estimate_depth`) cannot see moving objects:
 its anchors are triangulated static tracks, so a moving object's pixels take the depth of
@@ -9,10 +9,13 @@ with that depth, a 2D track on the object carries made-up motion along the ray, 
 seated at different frames disagree on where the object is, and Gaussians back-projected
 from different frames land at different depths -- the object smears into a ghost.
 
-:func:`track_consistent_depth` gives every moving track one depth -- the median of the
+:func:`track_consistent_depth` gives every moving track one depth -- a low percentile of the
 prior along the track -- and paints each moving pixel of each frame with the depth of the
-nearest moving track visible there. Depth along a track is then constant, so lifted
-tracks move only across the rays (the motion the image shows), and candidates, nodes,
+nearest moving track visible there. Given the cameras, that one depth is the depth of the
+track's point at its reference frame, and at the other frames it is the depth that point
+would have if it had stayed where it was: the change the camera's own motion makes (an
+orbiting camera changes a point's depth 1.3x over the generated scenes' clips). Lifted
+tracks then move only across the rays (the motion the image shows), and candidates, nodes,
 tracks and Gaussians seeded from any frame agree. Used only with the weight-free depth;
 a depth model or file sees the objects and is kept as it is. :func:`moving_object_depth`
 runs the stages in order for ``engine.pipeline.prepare``: ground contact, hinges
@@ -118,8 +121,17 @@ def ground_contact_depth(depth: np.ndarray, dynamic: np.ndarray, threshold: floa
 
 def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarray, visible: np.ndarray,
                            threshold: float = 0.5, max_px: float | None = None,
-                           contact: np.ndarray | None = None, percentile: float = 10.0) -> tuple[np.ndarray, dict]:
+                           contact: np.ndarray | None = None, percentile: float = 10.0,
+                           K: np.ndarray | None = None, w2c: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Depth with one value per moving track, spread to the moving pixels of each frame.
+
+    Without cameras a track's depth is the same at every frame; with them (``K``, ``w2c``) it
+    is one depth at the track's reference frame (the visible frame nearest the middle of its
+    life), carried to the other frames as the camera depth of that point left at rest
+    (:func:`_rest_depth_lines`): the prior's depths along the track are taken back to the
+    reference frame the same way before the percentile, so the camera's approach or retreat
+    is neither mistaken for the object's depth nor averaged away. A point at rest is then
+    lifted to one place; a moving one moves across the rays as before.
 
     Parameters
     ----------
@@ -134,6 +146,7 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
         (:func:`ground_contact_depth`, NaN = none); where given, a track's depth at a frame
         is the smaller of it and the prior (occlusion order), and moving pixels far from
         every track take it too.
+    K : float [F, 3, 3], w2c : float [F, 4, 4] or None: the frames' cameras (both or neither).
 
     Returns
     -------
@@ -158,24 +171,61 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
     if contact is not None:
         zc = _along_tracks(contact, mxy)
         z = np.where(np.isfinite(zc) & np.isfinite(z), np.minimum(z, zc), z)
-    with np.errstate(all="ignore"):
-        # a low percentile in log depth: the object is in front of everything the prior saw
-        # behind it along the track (occlusion order), robust to a few stray frames; the
-        # median (50) is the typical background depth, the former choice
-        z_track = np.exp(np.nanpercentile(np.log(z), percentile, axis=1))
-    has = np.isfinite(z_track)
+    # a low percentile in log depth: the object is in front of everything the prior saw behind
+    # it along the track (occlusion order), robust to a few stray frames; the median (50) is
+    # the typical background depth, the former choice
+    if w2c is not None:
+        a, b = _rest_depth_lines(mxy, mvis, K, w2c)
+        with np.errstate(all="ignore"):
+            # each frame's depth taken back to the reference frame (b small: the reference ray
+            # runs nearly parallel to that frame's image plane, and the inverse is unstable)
+            z_ref = np.where(b > 0.2, (z - a) / b, np.nan)
+            z_ref = np.exp(np.nanpercentile(np.log(np.where(z_ref > 0, z_ref, np.nan)), percentile, axis=1))
+            z_pf = a + b * z_ref[:, None]  # [P, F]
+        z_pf = np.where(np.isfinite(z_pf) & (z_pf > 0), z_pf, np.nan)
+    else:
+        with np.errstate(all="ignore"):
+            z_track = np.exp(np.nanpercentile(np.log(z), percentile, axis=1))
+        z_pf = np.broadcast_to(z_track[:, None], mvis.shape)
     for k in range(f):  # one KD-tree per frame; every pixel query of the frame is vectorised
-        on = mvis[:, k] & has
+        on = mvis[:, k] & np.isfinite(z_pf[:, k])
         ys, xs = np.nonzero(dynamic[k] >= threshold)
         if not on.any() or not len(ys):
             continue
         tree = cKDTree(mxy[on, k])
         dist, j = tree.query(np.stack([xs + 0.5, ys + 0.5], 1), k=1)
         near = dist <= max_px
-        out[k, ys[near], xs[near]] = z_track[on][j[near]].astype(np.float32)
+        out[k, ys[near], xs[near]] = z_pf[on, k][j[near]].astype(np.float32)
         stats["painted_px"] += int(near.sum())
         stats["frames"] += 1
     return out, stats
+
+
+def _rest_depth_lines(xy: np.ndarray, visible: np.ndarray, K: np.ndarray, w2c: np.ndarray):
+    """``(a, b)`` float [P, F]: the camera depth at frame k of a track's point left at rest where
+    it was at its reference frame (the middle of its visible frames) at depth z there is
+    ``a + b z`` (camera depth is affine along a ray): the depth change that the camera's own
+    motion makes. ``xy [P, F, 2]``, ``visible [P, F]``, ``K [F, 3, 3]``, ``w2c [F, 4, 4]``."""
+    import torch
+
+    from ..geometry.camera import camera_centers, unproject, world_to_camera
+
+    p, f = visible.shape
+    frame = np.arange(f)[None]
+    first = np.where(visible, frame, f).min(1)
+    last = np.where(visible, frame, -1).max(1)
+    mid = (first + last) // 2
+    # the visible frame nearest the middle of the track's span (a never-visible track: frame 0)
+    ref = np.argmin(np.where(visible, np.abs(frame - mid[:, None]), f + 1), axis=1)
+    Kt = torch.as_tensor(np.asarray(K), dtype=torch.float64)
+    Wt = torch.as_tensor(np.asarray(w2c), dtype=torch.float64)
+    rt = torch.as_tensor(ref)
+    uv = torch.as_tensor(np.nan_to_num(xy[np.arange(p), ref]), dtype=torch.float64)
+    x1 = unproject(Kt[rt], Wt[rt], uv, torch.ones(p, dtype=torch.float64))  # [P, 3] at depth 1
+    c = camera_centers(Wt)[rt]  # [P, 3]
+    a = world_to_camera(Wt[None], c[:, None])[..., 2]  # [P, F]
+    b = world_to_camera(Wt[None], x1[:, None])[..., 2] - a
+    return a.numpy(), b.numpy()
 
 
 HINGE_MODES = ("auto", "depth", "off")
@@ -186,7 +236,8 @@ def moving_object_depth(pr, prior_config, K, w2c, extent, reporter) -> tuple[np.
     those of the hinges, and what gave them.
 
     The weight-free depth of a moving object is its surroundings' and changes as the object
-    crosses them: each moving track gets one depth (:func:`track_consistent_depth`), from
+    crosses them: each moving track gets one depth (:func:`track_consistent_depth`, carried
+    over its frames as the cameras move), from
     ground contact and occlusion order ('contact', :func:`ground_contact_depth`) and, for an
     object that turns about a static point, that point's depth where nearer
     (:mod:`engine.priors.hinge`); with ``hinges`` 'auto' such an object also gets long tracks
@@ -217,7 +268,8 @@ def moving_object_depth(pr, prior_config, K, w2c, extent, reporter) -> tuple[np.
             contact, hinges = _with_hinges(contact, pr.depth, pr.dynamic, K, w2c, extent, reporter)
             record["hinges"] = 0 if hinges is None else int(len(hinges.points))
     depth, st = track_consistent_depth(pr.depth, pr.dynamic, pr.tracks.xy, pr.tracks.visible,
-                                       contact=contact, percentile=10.0 if mode == "contact" else 50.0)
+                                       contact=contact, percentile=10.0 if mode == "contact" else 50.0,
+                                       K=K, w2c=w2c)
     reporter.log(f"moving objects: one depth per moving track ({st['moving_tracks']} tracks, "
                  f"{st['painted_px']} pixels in {st['frames']} frames)")
     tracks = pr.tracks

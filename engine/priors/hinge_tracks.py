@@ -13,9 +13,8 @@ same band within ``max_jump_px`` continues it, else the path ends), and every pi
 at the seed frame becomes a track that keeps its angular and radial offset from the arc.
 
 The tracks carry their own camera depth (the hinge's, frame by frame): the per-track depth of
-:func:`~engine.priors.dynamic_depth.track_consistent_depth` gives a track one camera depth for
-its whole life, which a camera that moves towards or away from the hinge over tens of frames
-cannot keep.
+:func:`~engine.priors.dynamic_depth.track_consistent_depth` carries one depth over a track's
+life as if its point were at rest, which a link turning about the hinge is not.
 
 A body that is not rigid about the hinge (a second link hanging from the first, a cloth on a
 pole) slides along its rings: :func:`hinge_tracks` keeps only the bands whose turn agrees with
