@@ -13,8 +13,8 @@ from different frames land at different depths -- the object smears into a ghost
 prior along the track -- and paints each moving pixel of each frame with the depth of the
 nearest moving track visible there. Given the cameras, that one depth is the depth of the
 track's point at its reference frame, and at the other frames it is the depth that point
-would have if it had stayed where it was: the change the camera's own motion makes (an
-orbiting camera changes a point's depth 1.3x over the generated scenes' clips). Lifted
+would have if it had stayed where it was: the change the camera's own motion makes (the
+generated scenes' orbiting camera changes a point's depth 1.1-1.5x over a clip). Lifted
 tracks then move only across the rays (the motion the image shows), and candidates, nodes,
 tracks and Gaussians seeded from any frame agree. Used only with the weight-free depth;
 a depth model or file sees the objects and is kept as it is. :func:`moving_object_depth`
