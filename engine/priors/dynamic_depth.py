@@ -171,22 +171,19 @@ def track_consistent_depth(depth: np.ndarray, dynamic: np.ndarray, xy: np.ndarra
     if contact is not None:
         zc = _along_tracks(contact, mxy)
         z = np.where(np.isfinite(zc) & np.isfinite(z), np.minimum(z, zc), z)
-    # a low percentile in log depth: the object is in front of everything the prior saw behind
-    # it along the track (occlusion order), robust to a few stray frames; the median (50) is
-    # the typical background depth, the former choice
-    if w2c is not None:
-        a, b = _rest_depth_lines(mxy, mvis, K, w2c)
-        with np.errstate(all="ignore"):
-            # each frame's depth taken back to the reference frame (b small: the reference ray
-            # runs nearly parallel to that frame's image plane, and the inverse is unstable)
-            z_ref = np.where(b > 0.2, (z - a) / b, np.nan)
-            z_ref = np.exp(np.nanpercentile(np.log(np.where(z_ref > 0, z_ref, np.nan)), percentile, axis=1))
-            z_pf = a + b * z_ref[:, None]  # [P, F]
-        z_pf = np.where(np.isfinite(z_pf) & (z_pf > 0), z_pf, np.nan)
-    else:
-        with np.errstate(all="ignore"):
-            z_track = np.exp(np.nanpercentile(np.log(z), percentile, axis=1))
-        z_pf = np.broadcast_to(z_track[:, None], mvis.shape)
+    # the camera depth at frame k of a track's point left at rest is a + b z, z its depth at the
+    # reference frame; without cameras a = 0, b = 1: one depth for the track's whole life
+    a, b = _rest_depth_lines(mxy, mvis, K, w2c) if w2c is not None else (np.zeros_like(z), np.ones_like(z))
+    with np.errstate(all="ignore"):
+        # each frame's depth taken back to the reference frame (b small: the reference ray runs
+        # nearly parallel to that frame's image plane, and the inverse is unstable); then a low
+        # percentile in log depth: the object is in front of everything the prior saw behind it
+        # along the track (occlusion order), robust to a few stray frames; the median (50) is
+        # the typical background depth, the former choice
+        z_ref = np.where(b > 0.2, (z - a) / b, np.nan)
+        z_ref = np.exp(np.nanpercentile(np.log(np.where(z_ref > 0, z_ref, np.nan)), percentile, axis=1))
+        z_pf = a + b * z_ref[:, None]  # [P, F]
+    z_pf = np.where(np.isfinite(z_pf) & (z_pf > 0), z_pf, np.nan)
     for k in range(f):  # one KD-tree per frame; every pixel query of the frame is vectorised
         on = mvis[:, k] & np.isfinite(z_pf[:, k])
         ys, xs = np.nonzero(dynamic[k] >= threshold)
