@@ -343,7 +343,8 @@ def initial_nodes(prep: PreparedClip, cfg: TrainConfig) -> B.NodeArrays:
     mani = ManiConfig(budget=cfg.num_nodes, **dataclasses.asdict(cfg.mani))  # the run's MANI settings
     init_cfg = NodeInitConfig(method=cfg.init, mani=mani, num_keys=num_keys, num_keyframes=min(12, n_train),
                               seed=cfg.seed, trajectory=trajectory, radius_k=cfg.radius_k,
-                              radius_factor=cfg.radius_factor, rotations=cfg.node_rotations)
+                              radius_factor=cfg.radius_factor, rotations=cfg.node_rotations,
+                              chain_hop_weight=cfg.node_path_chain)
     tr = prep.priors.tracks
     own_depth = getattr(tr, "depth", None)
     nodes = initialise_nodes(prep.priors.depth[order], prep.K[order], prep.w2c[order], prep.times[order],

@@ -59,6 +59,8 @@ class NodeInitConfig:
     irls_iters: int = 3
     fallback: str = "graph"        #: "graph" or "static" for nodes without tracks
     max_residual_ratio: float | None = 1.0  #: fall back when fit residual > this × explained motion (None: off)
+    chain_hop_weight: float = 0.5  #: past its own tracks a node follows the tracks around it (path_chain), each new set of
+                                   #: tracks weighted by this factor once more; 0: held where its own tracks end
     seed: int = 0
 
 
@@ -149,7 +151,8 @@ def assemble_nodeset(centers, src_time, p_dyn, tracks3d, times, config: NodeInit
         pos_keys, pos_tan, support = fit_node_trajectories(
             centers, frame, radii, tracks3d, times, key_times, graph_idx,
             config.k_tracks, config.support_radius, config.smoothness, None, config.irls_iters,
-            config.fallback, max_residual_ratio=config.max_residual_ratio, frame_rot=frame_rot)
+            config.fallback, max_residual_ratio=config.max_residual_ratio, frame_rot=frame_rot,
+            chain_hop_weight=config.chain_hop_weight)
     elif config.trajectory == "static":
         pos_keys = centers.unsqueeze(1).expand(-1, key_times.shape[0], -1).clone()
         pos_tan = torch.zeros_like(pos_keys)

@@ -19,6 +19,7 @@ from ..geometry.camera import unproject
 from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_fit
 from ..geometry.quaternion import quat_from_matrix, quat_identity, quat_normalize
 from ..geometry.rigid import weighted_kabsch
+from .path_chain import chain_node_paths
 
 
 def lift_tracks(tracks_xy: torch.Tensor, tracks_vis: torch.Tensor, depth: torch.Tensor, K: torch.Tensor,
@@ -191,7 +192,8 @@ def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, rad
                           graph_idx: torch.Tensor | None = None, k_tracks: int = 8,
                           support_radius: float = 2.0, smoothness: float = 1e-2, huber: float | None = None,
                           irls_iters: int = 3, fallback: str = "graph", fallback_rounds: int = 10,
-                          max_residual_ratio: float | None = 1.0, frame_rot: torch.Tensor | None = None):
+                          max_residual_ratio: float | None = 1.0, frame_rot: torch.Tensor | None = None,
+                          chain_hop_weight: float = 0.0):
     """Least-squares Hermite position keys per node from nearby lifted tracks.
 
     Each node takes its ``k_tracks`` nearest tracks at its source frame within
@@ -205,12 +207,16 @@ def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, rad
     places the node where the turned offset from it puts it, ``x_j(f) + R_i(f)(c_i − a_j)``
     (``a_j`` its position at the source frame), instead of shifting the centre by the
     track's displacement: on a turning part the two differ by the turn of that offset.
+    With ``chain_hop_weight > 0``, in the frames where none of its own tracks is seen the node
+    also takes the path :func:`engine.nodes.path_chain.chain_node_paths` carries it along (the
+    tracks around it there), weighted by the node's mean per-frame support times
+    ``chain_hop_weight ** hops``; 0 holds it where its own tracks leave it.
 
     Parameters
     ----------
     centers : (N, 3); source_frame : (N,) long; radii : (N,); tracks3d : (P, F, 3) NaN=missing;
     times : (F,); key_times : (K,); graph_idx : (N, k) for the graph fallback;
-    frame_rot : (N, F, 3, 3) or None.
+    frame_rot : (N, F, 3, 3) or None; chain_hop_weight : float in [0, 1].
 
     Returns
     -------
@@ -232,9 +238,24 @@ def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, rad
         turn = torch.einsum("nfij,nkj->nkfi", frame_rot - torch.eye(3), off)
         samples = samples + turn
     valid = torch.isfinite(samples).all(-1) & (wts.unsqueeze(-1) > 0)  # [N, k, F]
+    if chain_hop_weight > 0:
+        # where none of its own tracks is seen, the node goes on with the tracks around it
+        path, hops = chain_node_paths(centers, source_frame, radii, tracks3d, kk, support_radius)
+        own = valid.any(1)  # [N, F]
+        own_w = (wts.unsqueeze(-1) * valid).sum(1).sum(1) / own.sum(1).clamp_min(1)  # mean weight per frame
+        own_w = torch.where(own.any(1), own_w, torch.ones_like(own_w))
+        chained = torch.isfinite(path).all(-1) & ~own
+        rel = torch.where(chained.unsqueeze(-1), path - centers.unsqueeze(1), torch.full_like(path, float("nan")))
+        samples = torch.cat([samples, rel.unsqueeze(1)], 1)
+        wts = torch.cat([wts, own_w.unsqueeze(1)], 1)
+        valid = torch.cat([valid, chained.unsqueeze(1)], 1)
+        frame_w = torch.cat([torch.ones(n, kk, f), (chain_hop_weight ** hops.float()).unsqueeze(1)], 1)
+        kk = kk + 1
+    else:
+        frame_w = torch.ones(n, kk, f)
     support = (wts.unsqueeze(-1) * valid).sum((1, 2))
     s = samples.permute(0, 2, 1, 3).reshape(n, f * kk, 3)  # sample order: time-major
-    sw = (wts.unsqueeze(-1) * valid).permute(0, 2, 1).reshape(n, f * kk)
+    sw = (wts.unsqueeze(-1) * valid * frame_w).permute(0, 2, 1).reshape(n, f * kk)
     t_s = times.float().repeat_interleave(kk)
     lam = smoothness * support.clamp_min(1e-6).mean()
     thr = radii.unsqueeze(1) if huber is None else torch.full((n, 1), huber)

@@ -124,6 +124,9 @@ class TrainConfig:
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     node_rotations: str = "tracks"       # initial node rotations: "tracks" (rigid rotation of each node's lifted
                                          # tracks; a rolling or swinging part turns its texture) or "identity"
+    node_path_chain: float = 0.5         # past its own tracks a node's initial path follows the tracks around it
+                                         # (engine/nodes/path_chain.py), each new set of them weighted by this
+                                         # factor once more; 0: held where its own tracks end
     arap_graph: str = "paths"            # ARAP neighbours: nearest "paths" (the largest distance between two nodes'
                                          # key positions, engine.nodes.graph.path_graph: parts that move apart, either
                                          # side of an elbow, are not tied) or nearest canonical "centres"
@@ -239,6 +242,8 @@ class TrainConfig:
                 bad(key, "must be >= 0")
         if not 0 < self.lifespan_min <= 1 <= self.lifespan_max:
             bad("lifespan_min", "and lifespan_max must satisfy 0 < lifespan_min <= 1 <= lifespan_max")
+        if not 0 <= self.node_path_chain <= 1:
+            bad("node_path_chain", "must be in [0, 1] (0: off)")
         if not (0 <= self.canonical_time <= 1 or self.canonical_time == -1):
             bad("canonical_time", "must be in [0, 1] (fraction of the training frames) or -1 (source frames)")
         if self.arap_graph not in ("centres", "paths"):
