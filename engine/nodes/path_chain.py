@@ -3,18 +3,20 @@
 :func:`engine.nodes.trajectory.fit_node_trajectories` fits a node's spline to the tracks
 nearest it at its *source* frame. On fast parts those tracks live a few frames (the flow
 loses a fast limb or a rolling ball within a training interval or two), so outside their
-life the node had no sample and its path was held where they left them: on the large-motion
-scenes most of the forearm's and the ball's nodes stood still for half the clip
-(docs/benchmarks.md, *A node's path past its own tracks*).
+life the node had no sample and its path was held where they left it: on the large-motion
+scenes the forearm's nodes had samples of their own in about half the frames and the ball's in
+70-80 %, and held, they were about a unit off in the rest (docs/benchmarks.md, *A node's path
+past its own tracks*).
 
 :func:`chain_node_paths` follows each node on with the tracks around it *where it is then*:
 from its source frame it moves with its own tracks' mean displacement; when those carry less
 than ``keep`` of their weight, it takes the tracks nearest its current position (an *anchor*
 frame) and goes on with their displacement since the anchor, forwards and backwards in time.
-Displacements are measured from the anchor rather than summed frame to frame, so a lifted
-track's depth noise enters once per anchor, not once per frame.
+Displacements are measured from the anchor rather than summed frame to frame, so the noise of
+a lifted track's depth enters once per anchor instead of accumulating every frame.
 
-The fit weighs these samples by ``hop_weight ** hops`` (``hops``: anchors taken since the
+:func:`engine.nodes.trajectory.fit_node_trajectories` weighs these samples by
+``chain_hop_weight ** hops`` (``hops``: anchors taken since the
 source frame): every new set of tracks is another chance to land on another part or on
 tracks lifted at the wrong depth, so a path pieced together from many sets is trusted less
 than one a node's own tracks support, and the spline's smoothness holds it instead (the
