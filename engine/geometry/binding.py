@@ -58,6 +58,15 @@ def knn_nodes(points: torch.Tensor, nodes: torch.Tensor, k: int, chunk_size: int
     return idx_out, (diff * diff).sum(-1)
 
 
+def support_weights(dist2: torch.Tensor, radii: torch.Tensor, cutoff: float) -> torch.Tensor:
+    """Unnormalised RBF weights ``exp(−d²/2ρ²)``, zero beyond ``cutoff × ρ``: how much each of a
+    node's nearest tracks supports it (``engine/nodes/trajectory.py``, ``engine/nodes/path_chain.py``).
+
+    dist2 : (N, K) squared distances; radii : (N, 1) or (N, K) radius ``ρ``. Returns (N, K).
+    """
+    return torch.exp(-dist2 / (2 * radii ** 2)) * (dist2 <= (cutoff * radii) ** 2)
+
+
 def rbf_weights(dist2: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
     """Normalised RBF weights over each row's neighbours.
 

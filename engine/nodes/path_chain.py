@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import torch
 
-from ..geometry.binding import knn_nodes
+from ..geometry.binding import knn_nodes, support_weights
 
 
 def chain_node_paths(centers: torch.Tensor, source_frame: torch.Tensor, radii: torch.Tensor,
@@ -83,8 +83,7 @@ def chain_node_paths(centers: torch.Tensor, source_frame: torch.Tensor, radii: t
                 if candidates.numel():
                     kh = min(kk, candidates.numel())
                     near, d2 = knn_nodes(path[renew, fi], tracks3d[candidates, fi], kh)
-                    rho = radii[renew].unsqueeze(1)
-                    w_new[:, :kh] = torch.exp(-d2 / (2 * rho ** 2)) * (d2 <= (support_radius * rho) ** 2)
+                    w_new[:, :kh] = support_weights(d2, radii[renew].unsqueeze(1), support_radius)
                     i_new[:, :kh] = candidates[near]
                 idx[renew], w0[renew], anchor[renew] = i_new, w_new, fi
                 hop[renew] += 1

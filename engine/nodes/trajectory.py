@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from ..geometry.binding import knn_nodes
+from ..geometry.binding import knn_nodes, support_weights
 from ..geometry.camera import unproject
 from ..geometry.hermite import catmull_rom_tangents, hermite_eval, hermite_fit
 from ..geometry.quaternion import quat_from_matrix, quat_identity, quat_normalize
@@ -183,7 +183,7 @@ def _support_tracks(centers, source_frame, radii, tracks3d, k, support_radius):
         idx, d2 = knn_nodes(centers[sel], anchor[tid], k_here)
         rho = radii[sel].unsqueeze(1)
         tr[sel, :k_here] = tid[idx]
-        wts[sel, :k_here] = torch.exp(-d2 / (2 * rho ** 2)) * (d2 <= (support_radius * rho) ** 2)
+        wts[sel, :k_here] = support_weights(d2, rho, support_radius)
     return tr, wts
 
 
@@ -238,24 +238,22 @@ def fit_node_trajectories(centers: torch.Tensor, source_frame: torch.Tensor, rad
         turn = torch.einsum("nfij,nkj->nkfi", frame_rot - torch.eye(3), off)
         samples = samples + turn
     valid = torch.isfinite(samples).all(-1) & (wts.unsqueeze(-1) > 0)  # [N, k, F]
+    sample_w = wts.unsqueeze(-1) * valid  # [N, k, F]
+    support = sample_w.sum((1, 2))
     if chain_hop_weight > 0:
         # where none of its own tracks is seen, the node goes on with the tracks around it
         path, hops = chain_node_paths(centers, source_frame, radii, tracks3d, kk, support_radius)
         own = valid.any(1)  # [N, F]
-        own_w = (wts.unsqueeze(-1) * valid).sum(1).sum(1) / own.sum(1).clamp_min(1)  # mean weight per frame
-        own_w = torch.where(own.any(1), own_w, torch.ones_like(own_w))
+        own_w = torch.where(own.any(1), support / own.sum(1).clamp_min(1), torch.ones_like(support))  # per frame
         chained = torch.isfinite(path).all(-1) & ~own
         rel = torch.where(chained.unsqueeze(-1), path - centers.unsqueeze(1), torch.full_like(path, float("nan")))
         samples = torch.cat([samples, rel.unsqueeze(1)], 1)
-        wts = torch.cat([wts, own_w.unsqueeze(1)], 1)
-        valid = torch.cat([valid, chained.unsqueeze(1)], 1)
-        frame_w = torch.cat([torch.ones(n, kk, f), (chain_hop_weight ** hops.float()).unsqueeze(1)], 1)
+        chain_w = own_w.unsqueeze(1) * chained * chain_hop_weight ** hops.float()  # [N, F]
+        sample_w = torch.cat([sample_w, chain_w.unsqueeze(1)], 1)
+        support = support + (own_w.unsqueeze(1) * chained).sum(1)
         kk = kk + 1
-    else:
-        frame_w = torch.ones(n, kk, f)
-    support = (wts.unsqueeze(-1) * valid).sum((1, 2))
     s = samples.permute(0, 2, 1, 3).reshape(n, f * kk, 3)  # sample order: time-major
-    sw = (wts.unsqueeze(-1) * valid * frame_w).permute(0, 2, 1).reshape(n, f * kk)
+    sw = sample_w.permute(0, 2, 1).reshape(n, f * kk)
     t_s = times.float().repeat_interleave(kk)
     lam = smoothness * support.clamp_min(1e-6).mean()
     thr = radii.unsqueeze(1) if huber is None else torch.full((n, 1), huber)
