@@ -117,6 +117,8 @@ class TrainConfig:
                                          # proportionally more (the same per frame; 0 = never more),
     lifespan_seed_max: int = 120_000     # ... up to this many in all (~300 frames' worth: the step time grows
                                          # with every Gaussian, shown or not; a longer clip gets fewer per frame)
+    lifespan_anchor: bool = False        # ... each one held at its seed frame while the node keys train (engine/train/
+                                         # seed_anchor.py): sharp training frames; the keys learn motion between frames
     lifespan_min: float = 0.5            # ... each one's lifespan is learned (lr_lifespan), within these factors of
     lifespan_max: float = 4.0            # lifespan_frames: short where its nodes lose the object, long where they
                                          # follow it (engine/train/lifespan.py)

@@ -36,6 +36,7 @@ from .objective import Objective
 from .param_edit import make_optimizer  # noqa: F401  (re-exported)
 from .phases import no_phase
 from .render import render_scene, scene_colors
+from .seed_anchor import anchor_to_seed_time_, deform_seed_relative, seed_poses_kept
 from .split import freeze_static_nodes
 from .strategy import GaussianDensifyStrategy, NodeDensifyStrategy
 from .warmup import warm_kernels
@@ -161,7 +162,11 @@ class Trainer:
             shown = shown_gaussians(m, t) if CULL_HIDDEN else None
             # node state at t once per step: the deformation, the track term and ARAP share it
             pos_t, rot_t, dq_nodes = m.node_state_dq(t)
-            means_t, quats_t = m.deform(t, dq_nodes=dq_nodes, index=shown)
+            if self._anchoring():  # keys learn each held Gaussian's motion relative to its seed frame
+                rows = shown if shown is not None else torch.arange(m.num_gaussians, device=m.means.device)
+                means_t, quats_t = deform_seed_relative(m, t, dq_nodes, rows)
+            else:
+                means_t, quats_t = m.deform(t, dq_nodes=dq_nodes, index=shown)
         with ph("sh"):  # the colour raster.render would compute from sh=..., timed on its own
             colors = scene_colors(m, means_t, d.w2c[f], index=shown)
         # the mask term (every 4th step) renders the Gaussians' dynamic score as an extra
@@ -179,6 +184,12 @@ class Trainer:
                                                       (pos_t, rot_t, dq_nodes), shown=shown)
             return loss, metrics, out, shown
 
+    def _anchoring(self) -> bool:
+        """Whether this step holds the moving Gaussians at their seed frames
+        (``cfg.lifespan_anchor``; from the end of the static warm-up, when the keys train)."""
+        return (self.cfg.lifespan_anchor and self.model.pos_keys is not None
+                and self.step >= self.cfg.warmup_static_steps)
+
     def _static_motion(self, pos_t: torch.Tensor, rot_t: torch.Tensor, state_t1=None) -> torch.Tensor:
         """The static-motion term now (:meth:`Objective.static_motion`)."""
         return self.objective.static_motion(self.model, pos_t, rot_t, state_t1)
@@ -187,10 +198,11 @@ class Trainer:
     def _densify(self):
         """Gaussian densification, rebinding, then node densification (``cfg.node_densify``)."""
         with torch.no_grad():
-            self.gaussian_strategy.densify(self.model, self.opt, self.gen)
-            self._rebind()
-            if self.cfg.node_densify:
-                self._densify_nodes()
+            self.gaussian_strategy.densify(self.model, self.opt, self.gen)  # the binding follows the rows
+            with seed_poses_kept(self.model, self._anchoring()):
+                self._rebind()
+                if self.cfg.node_densify:
+                    self._densify_nodes()
             self.gaussian_strategy.reset_stats(self.model.num_gaussians)
 
     def _densify_nodes(self):
@@ -281,9 +293,15 @@ class Trainer:
                         if group["name"] in motion_groups:
                             for p in group["params"]:
                                 p.grad = None
+                anchoring = self._anchoring()
+                if anchoring:
+                    keys_before = (self.model.pos_keys.detach().clone(), self.model.rot_keys.detach().clone())
                 with ph("optimizer"):
                     self.opt.step()
                     clamp_lifespans_(self.model, cfg)
+                if anchoring:
+                    with ph("anchor"):
+                        anchor_to_seed_time_(self.model, *keys_before)
                 with torch.no_grad(), ph("densify_stats"):
                     self.gaussian_strategy.step_post_backward(self.step, out, d.width, d.height, index=shown)
                 self.step += 1
@@ -293,7 +311,8 @@ class Trainer:
                 if cfg.densify_from <= self.step < cfg.densify_until and self.step % cfg.densify_every == 0:
                     self._densify()
                 elif cfg.rebind_every and self.step % cfg.rebind_every == 0:
-                    self._rebind()
+                    with torch.no_grad(), seed_poses_kept(self.model, self._anchoring()):
+                        self._rebind()
                 if cfg.opacity_reset_every and self.step % cfg.opacity_reset_every == 0 and self.step < cfg.densify_until:
                     self.gaussian_strategy.reset_opacity(self.model, self.opt)
                 if self.step % cfg.log_every == 0 or self.step == cfg.steps:
