@@ -1,6 +1,8 @@
 """Moving Gaussians held at their seed frame while the node keys train (engine/train/seed_anchor.py)."""
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from engine.train.config import preset_config
@@ -106,8 +108,7 @@ def test_training_holds_the_moving_gaussians_at_their_seed_frames(tmp_path):
                rebind_every=15, lr_means=0.0, lr_means_final=0.0, lr_quats=0.0, lifespan_anchor=True)
     runs = {}
     for anchor in (True, False):
-        trainer = Trainer(data, make_nodes(truth, key_count=5), cfg.__class__(**{**cfg.__dict__,
-                                                                                 "lifespan_anchor": anchor}),
+        trainer = Trainer(data, make_nodes(truth, key_count=5), dataclasses.replace(cfg, lifespan_anchor=anchor),
                           tmp_path / f"run{anchor}")
         rows = anchored_rows(trainer.model)
         before, keys0 = seed_poses(trainer.model, rows)[0], trainer.model.pos_keys.detach().clone()
