@@ -288,6 +288,24 @@ class DynamicScene(nn.Module):
         pos, rot = self.node_state(t)
         return pos, rot, node_transforms_dq(self.node_centers, pos, rot)
 
+    def times_basis(self, times) -> torch.Tensor:
+        """Catmull-Rom weights ``[T, K]`` of the keys at each of ``times`` (T floats; the rows of
+        :meth:`spline_basis`, zeros included), float64, cached while the key times are
+        unchanged (a run asks for the same sets of times again and again: its training
+        frames, the seed times of its moving Gaussians)."""
+        times = tuple(float(t) for t in times)
+        kt = self.key_times
+        key = (times, id(kt), kt._version)
+        cache = self.__dict__.setdefault("_times_basis_cache", {})
+        hit = cache.get(key)
+        if hit is None:
+            kt_np = kt.detach().cpu().double().numpy()
+            hit = torch.from_numpy(np.stack([catmull_rom_basis(kt_np, t) for t in times]))
+            if len(cache) > 256:
+                cache.clear()
+            cache[key] = hit
+        return hit
+
     def node_states(self, times, nodes: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Positions ``[S, T, 3]`` and unit quaternions ``[S, T, 4]`` of the nodes ``nodes [S]``
         (default all) at each of ``times`` (T floats): :meth:`node_state` at every time, in
@@ -296,8 +314,7 @@ class DynamicScene(nn.Module):
         times = [float(t) for t in times]
         sel = (lambda x: x) if nodes is None else (lambda x: x[nodes])  # noqa: E731
         if self.mlp is None and getattr(self, "explicit_tangents", None) is None and times:
-            kt = self.key_times.detach().cpu().double().numpy()
-            basis = torch.from_numpy(np.stack([catmull_rom_basis(kt, t) for t in times])).to(self.pos_keys)
+            basis = self.times_basis(times).to(self.pos_keys)
             pos = torch.einsum("tk,nkc->ntc", basis, sel(self.pos_keys))
             return pos, quat_normalize(torch.einsum("tk,nkc->ntc", basis, sel(self.rot_keys)))
         states = [self.node_state(t) for t in times]

@@ -29,19 +29,23 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 
-import numpy as np
 import torch
 
 from ..geometry.dualquat import dq_apply_points, dq_apply_rotations, dq_blend, dq_inverse, node_transforms_dq
-from ..geometry.hermite import catmull_rom_basis
 from ..geometry.quaternion import quat_normalize
 from .fused import fused_available, fused_deform
 
 
+def _holds(model) -> bool:
+    """Whether ``model``'s motion can hold Gaussians at their seed times: Catmull-Rom spline
+    keys (the MLP has none; explicit tangents, from a bundle, are not what training moves)."""
+    return model.mlp is None and model.pos_keys is not None and getattr(model, "explicit_tangents", None) is None
+
+
 def anchored_rows(model) -> torch.Tensor:
     """Rows ``[A]`` of the Gaussians held at their seed time: those with a lifespan, on a
-    Catmull-Rom spline model (the MLP and explicit tangents are left alone)."""
-    if model.mlp is not None or model.pos_keys is None or getattr(model, "explicit_tangents", None) is not None:
+    model whose motion :func:`_holds` them."""
+    if not _holds(model):
         return torch.zeros(0, dtype=torch.long, device=model.means.device)
     return torch.nonzero(model.gauss_lifespan > 0).squeeze(1)
 
@@ -50,34 +54,27 @@ def node_dq_at_times(model, pos_keys: torch.Tensor, rot_keys: torch.Tensor, time
     """Node transforms ``[S, N, 8]`` at ``times [S]`` for the keys ``pos_keys [N, K, 3]``,
     ``rot_keys [N, K, 4]`` on ``model``'s key times (Catmull-Rom, as
     :meth:`~engine.train.model.DynamicScene.node_states`); differentiable in the keys."""
-    basis = _basis(model, times).to(pos_keys)
+    basis = model.times_basis(times.tolist()).to(pos_keys)
     pos = torch.einsum("sk,nkc->snc", basis, pos_keys)
     rot = quat_normalize(torch.einsum("sk,nkc->snc", basis, rot_keys))
     return node_transforms_dq(model.node_centers.expand_as(pos), pos, rot)
 
 
-def _basis(model, times: torch.Tensor) -> torch.Tensor:
-    """Catmull-Rom weights ``[S, K]`` of the key times at ``times [S]``, cached on the model
-    (a run's seed times and key times do not change, and a Python loop over the times per
-    step was a quarter of the anchoring's cost)."""
-    key = (tuple(model.key_times.tolist()), tuple(times.tolist()))
-    cache = model.__dict__.setdefault("_seed_basis_cache", {})
-    if key not in cache:
-        kt = model.key_times.detach().cpu().double().numpy()
-        if len(cache) > 256:  # the anchored rows' seed times, and each step's shown subset of them
-            cache.clear()
-        cache[key] = torch.from_numpy(np.stack([catmull_rom_basis(kt, float(t)) for t in times.tolist()]))
-    return cache[key]
-
-
-def _seed_tables(model, rows: torch.Tensor, pos_keys: torch.Tensor, rot_keys: torch.Tensor,
-                 bind_idx: torch.Tensor | None = None):
-    """Node transforms of every distinct seed time of ``rows`` as one ``[S*N, 8]`` table, and
-    each row's binding ``[A, K]`` into it (so one blend serves Gaussians of many times)."""
+def _seed_index(model, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The distinct seed times ``[S]`` of ``rows`` and each row's binding ``[A, K]`` into an
+    ``[S*N, 8]`` table of the node transforms at those times (so one blend serves Gaussians
+    of many times)."""
     times, which = torch.unique(model.gauss_t_center[rows], return_inverse=True)  # [S], [A]
-    table = node_dq_at_times(model, pos_keys, rot_keys, times).reshape(-1, 8)
-    idx = (model.bind_idx if bind_idx is None else bind_idx)[rows] + (which * model.num_nodes)[:, None]
-    return table, idx
+    return times, model.bind_idx[rows] + (which * model.num_nodes)[:, None]
+
+
+def _table(model, times: torch.Tensor, pos_keys: torch.Tensor | None = None,
+           rot_keys: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`node_dq_at_times` as one ``[S*N, 8]`` table, with the model's current keys
+    (detached) unless others are given."""
+    pos_keys = model.pos_keys.detach() if pos_keys is None else pos_keys
+    rot_keys = model.rot_keys.detach() if rot_keys is None else rot_keys
+    return node_dq_at_times(model, pos_keys, rot_keys, times).reshape(-1, 8)
 
 
 def _apply(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, means: torch.Tensor, quats: torch.Tensor):
@@ -91,26 +88,26 @@ def _apply(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, means: torch
 
 @torch.no_grad()
 def seed_poses(model, rows: torch.Tensor, pos_keys: torch.Tensor | None = None,
-               rot_keys: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+               rot_keys: torch.Tensor | None = None, index=None) -> tuple[torch.Tensor, torch.Tensor]:
     """World centres ``[A, 3]`` and unit rotations ``[A, 4]`` of ``rows`` at their seed times
-    (with the keys given, default the model's own)."""
-    pos_keys = model.pos_keys.detach() if pos_keys is None else pos_keys
-    rot_keys = model.rot_keys.detach() if rot_keys is None else rot_keys
-    table, idx = _seed_tables(model, rows, pos_keys, rot_keys)
-    return _apply(table, idx, model.bind_w[rows], model.means[rows], model.quats[rows])
+    (with the keys given, default the model's own; ``index``: :func:`_seed_index` of ``rows``
+    when the caller has it)."""
+    times, idx = _seed_index(model, rows) if index is None else index
+    return _apply(_table(model, times, pos_keys, rot_keys), idx, model.bind_w[rows], model.means[rows],
+                  model.quats[rows])
 
 
 @torch.no_grad()
-def restore_seed_poses_(model, rows: torch.Tensor, x_s: torch.Tensor, q_s: torch.Tensor) -> None:
+def restore_seed_poses_(model, rows: torch.Tensor, x_s: torch.Tensor, q_s: torch.Tensor, index=None) -> None:
     """Set the canonical centres / rotations of ``rows`` so that the model's current keys and
     binding put them at ``x_s [A, 3]`` / ``q_s [A, 4]`` at their seed times (in place; the
-    rotations keep their norm, which Adam's state is in)."""
+    rotations keep their norm, which Adam's state is in; ``index`` as in :func:`seed_poses`)."""
     if len(rows) == 0:
         return
-    table, idx = _seed_tables(model, rows, model.pos_keys.detach(), model.rot_keys.detach())
+    times, idx = _seed_index(model, rows) if index is None else index
     # the blend of the inverted node transforms is the inverse of the blend (DQB is linear
     # in the transforms, and the conjugate keeps norms and hemispheres)
-    c, q_c = _apply(dq_inverse(table), idx, model.bind_w[rows], x_s, q_s)
+    c, q_c = _apply(dq_inverse(_table(model, times)), idx, model.bind_w[rows], x_s, q_s)
     norm = model.quats[rows].norm(dim=-1, keepdim=True)
     model.means[rows] = c
     model.quats[rows] = quat_normalize(q_c) * norm
@@ -123,7 +120,8 @@ def anchor_to_seed_time_(model, pos_keys_before: torch.Tensor, rot_keys_before: 
     ``rot_keys_before [N, K, 4]`` did (their own trained centres included)."""
     rows = anchored_rows(model)
     if len(rows):
-        restore_seed_poses_(model, rows, *seed_poses(model, rows, pos_keys_before, rot_keys_before))
+        index = _seed_index(model, rows)  # the same rows and binding before and after the step
+        restore_seed_poses_(model, rows, *seed_poses(model, rows, pos_keys_before, rot_keys_before, index), index)
 
 
 @contextmanager
@@ -150,11 +148,11 @@ def deform_seed_relative(model, t: float, dq_nodes: torch.Tensor, index: torch.T
     ``t`` (:meth:`~engine.train.model.DynamicScene.node_dq`).
     """
     life = model.gauss_lifespan[index] > 0
-    if (model.mlp is not None or model.pos_keys is None or getattr(model, "explicit_tangents", None) is not None
-            or not bool(life.any())):
+    if not _holds(model) or not bool(life.any()):
         return model.deform(t, dq_nodes=dq_nodes, index=index)
     rows_l, rows_o = index[life], index[~life]
-    table, idx_s = _seed_tables(model, rows_l, model.pos_keys, model.rot_keys)
+    times, idx_s = _seed_index(model, rows_l)
+    table = _table(model, times, model.pos_keys, model.rot_keys)  # differentiable in the keys
     w_l = model.bind_w[rows_l]
     x_s, q_s = _apply(table.detach(), idx_s, w_l, model.means[rows_l], model.quats[rows_l])
     c, q_c = _apply(dq_inverse(table), idx_s, w_l, x_s, q_s)
