@@ -144,14 +144,16 @@ class Objective:
 
     # ---------------------------------------------------------------- the loss
     def terms(self, model: DynamicScene, step: int, f: int, t: float, out, means_t: torch.Tensor,
-              quats_t: torch.Tensor, nodes_t, shown: torch.Tensor | None = None):
+              quats_t: torch.Tensor, nodes_t, shown: torch.Tensor | None = None, deform=None):
         """The loss terms of frame ``f`` at training step ``step``: ``(loss, metrics, out)``.
 
         ``out`` is the frame's render (its ``extra`` channel the dynamic score on a mask
         step), ``means_t [G, 3]`` / ``quats_t [G, 4]`` the deformed Gaussians, ``nodes_t`` =
         node positions [N, 3], rotations [N, 4] and dual quaternions [N, 8] at ``t``
         (computed once by the trainer's ``_loss``). ``shown [L]``: the rows of the model that
-        ``means_t`` / ``quats_t`` are (``[L, ...]``; None = every Gaussian).
+        ``means_t`` / ``quats_t`` are (``[L, ...]``; None = every Gaussian). ``deform(t, dq_nodes,
+        index)``: how the step moves other rows, default ``model.deform`` (the trainer passes the
+        seed-frame deformation of ``engine/train/seed_anchor.py`` while it holds rows there).
         """
         d, m, w = self.data, model, self.cfg.loss
         pos_t, rot_t, dq_nodes = nodes_t
@@ -175,7 +177,7 @@ class Objective:
             if track is not None:
                 terms["track"] = w.track * track
         if w.on_mask > 0 and step >= self.cfg.warmup_static_steps:
-            on_mask = self.on_mask(m, f, t, means_t, dq_nodes, shown)
+            on_mask = self.on_mask(m, f, t, means_t, dq_nodes, shown, deform)
             if on_mask is not None:
                 terms["on_mask"] = w.on_mask * on_mask
         motion_on = step >= self.cfg.warmup_static_steps
@@ -250,7 +252,7 @@ class Objective:
 
     # ---------------------------------------------------------------- dynamic Gaussians on the mask
     def on_mask(self, model: DynamicScene, f: int, t: float, means_t: torch.Tensor, dq_nodes: torch.Tensor,
-                shown: torch.Tensor | None = None) -> torch.Tensor | None:
+                shown: torch.Tensor | None = None, deform=None) -> torch.Tensor | None:
         """How far the dynamic Gaussians of frame ``f`` project outside its moving region
         (:func:`~engine.train.losses.on_mask_loss` of up to 4096 of them, drawn with the run's
         generator), or None (no split, no dynamic prior, no moving pixel in the frame).
@@ -265,7 +267,8 @@ class Objective:
         as far away as they are. ``means_t [G, 3]``: the deformed centres at frame ``f`` (time
         ``t``, node transforms ``dq_nodes [N, 8]``); with ``shown [L]`` they are only those rows
         (``[L, 3]``), and the drawn Gaussians are deformed here, shown or not (the pull is on
-        every dynamic Gaussian, inside its lifespan window or not, as without the cull).
+        every dynamic Gaussian, inside its lifespan window or not, as without the cull), by
+        ``deform(t, dq_nodes, index)`` (default ``model.deform``).
         """
         d, m = self.data, model
         if not m.is_split or d.fg is None:
@@ -281,8 +284,11 @@ class Objective:
             return None
         if len(dyn) > 4096:
             dyn = dyn[torch.randperm(len(dyn), generator=self.gen)[:4096].to(dyn.device)]
-        centres = torch.index_select(means_t, 0, dyn) if shown is None else m.deform(t, dq_nodes=dq_nodes,
-                                                                                    index=dyn)[0]
+        if shown is None:
+            centres = torch.index_select(means_t, 0, dyn)
+        else:
+            centres = (deform or (lambda t, dq_nodes, index: m.deform(t, dq_nodes=dq_nodes, index=index)))(
+                t, dq_nodes, dyn)[0]
         return on_mask_term(centres, d.K[f], d.w2c[f], self.mask_dist[f], float(d.width) / 100.0)
 
     # ---------------------------------------------------------------- static motion

@@ -4,27 +4,30 @@ A moving Gaussian with a lifespan (``engine/train/lifespan.py``) is seeded from 
 frame, back-projected along that frame's pixel rays, and shows mostly around it. Its
 canonical centre is the seeded point moved back through the nodes' motion at its seed time
 ``t_s``. Every step moves the spline keys (one frame's photometric gradient, the track and
-graph terms, Adam's momentum on every key), so at ``t_s`` the Gaussian drifts off the pixel
-it was seeded on, and the training views lose the per-frame detail the seeds carried: with
-the node keys frozen the large-motion scenes' moving regions score ~25 dB on their training
-views, trained ~21 (docs/benchmarks.md, *A moving Gaussian held at its seed frame*).
+graph terms, Adam's momentum on every key), so at ``t_s`` a canonical Gaussian drifts off
+the pixel it was seeded on, and the training views lose the per-frame detail the seeds
+carried: with the node keys frozen the large-motion scenes' moving regions score ~25 dB on
+their training views, trained ~21 (docs/benchmarks.md, *A moving Gaussian held at its seed
+frame*).
 
-Two parts, both needed:
+So while the keys train, those Gaussians are held in their **seed frame**: their rows of
+``means`` / ``quats`` hold the world centre and rotation at ``t_s`` (:func:`to_seed_frame_`),
+and a render at time ``t`` moves them by ``B(t) B(t_s)^-1`` (:func:`deform_seed_frame`): the
+keys learn only a Gaussian's motion relative to its seed frame, nothing at the frame itself,
+and no key step can move it off its seed pixel. (With the plain gradient of a canonical
+Gaussian the keys ran off by a median 0.84 units over a run on the large scenes, and the
+moving regions gained under a dB.) Whatever needs canonical poses (a rebind, node
+densification, a render outside the step, the bundle) sees them through
+:func:`canonical_view` or after :func:`to_canonical_`.
 
-* :func:`anchor_to_seed_time_` after each optimiser step (and :func:`seed_poses` /
-  :func:`restore_seed_poses_` around a rebind or densification): each such Gaussian's
-  canonical centre and rotation are re-expressed so that the nodes' new state at ``t_s``
-  puts it where the old state did.
-* :func:`deform_seed_relative` in the step's forward pass: the same centres, with the
-  gradient of ``B(t) B(t_s)^-1 sg[B(t_s)] c``, so the keys learn only a Gaussian's motion
-  relative to its seed frame. With the plain gradient the anchoring undoes every step's
-  effect on a Gaussian's own frame and its gradient pushes the keys on without end (the keys
-  ran off by a median 0.84 units over a run on the large scenes, and their moving regions
-  gained under a dB over no anchoring).
+Why a second parametrisation rather than canonical centres re-anchored after each step (the
+first version, b935ecd): that re-expressed every held row after every step (two blends over
+all of them, ~40 ms a step on the large scenes' 120k seeds), where the seed frame costs only
+the rows a step draws.
 
-The model's representation is unchanged (canonical centres, one binding): the bundle,
-the Blender rig and every reader see an ordinary model.
+The bundle, the Blender rig and every reader see an ordinary canonical model.
 """
+
 from __future__ import annotations
 
 from contextlib import contextmanager
@@ -89,73 +92,101 @@ def _apply(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, means: torch
 @torch.no_grad()
 def seed_poses(model, rows: torch.Tensor, pos_keys: torch.Tensor | None = None,
                rot_keys: torch.Tensor | None = None, index=None) -> tuple[torch.Tensor, torch.Tensor]:
-    """World centres ``[A, 3]`` and unit rotations ``[A, 4]`` of ``rows`` at their seed times
-    (with the keys given, default the model's own; ``index``: :func:`_seed_index` of ``rows``
-    when the caller has it)."""
+    """World centres ``[A, 3]`` and unit rotations ``[A, 4]`` of canonical ``rows`` at their
+    seed times (with the keys given, default the model's own; ``index``: :func:`_seed_index` of
+    ``rows`` when the caller has it)."""
     times, idx = _seed_index(model, rows) if index is None else index
     return _apply(_table(model, times, pos_keys, rot_keys), idx, model.bind_w[rows], model.means[rows],
                   model.quats[rows])
 
 
 @torch.no_grad()
-def restore_seed_poses_(model, rows: torch.Tensor, x_s: torch.Tensor, q_s: torch.Tensor, index=None) -> None:
-    """Set the canonical centres / rotations of ``rows`` so that the model's current keys and
-    binding put them at ``x_s [A, 3]`` / ``q_s [A, 4]`` at their seed times (in place; the
-    rotations keep their norm, which Adam's state is in; ``index`` as in :func:`seed_poses`)."""
-    if len(rows) == 0:
-        return
+def canonical_poses(model, rows: torch.Tensor, x_s: torch.Tensor, q_s: torch.Tensor,
+                    index=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The canonical centres ``[A, 3]`` and unit rotations ``[A, 4]`` that the model's current
+    keys and binding put at ``x_s [A, 3]`` / ``q_s [A, 4]`` at the seed times of ``rows``."""
     times, idx = _seed_index(model, rows) if index is None else index
     # the blend of the inverted node transforms is the inverse of the blend (DQB is linear
     # in the transforms, and the conjugate keeps norms and hemispheres)
-    c, q_c = _apply(dq_inverse(_table(model, times)), idx, model.bind_w[rows], x_s, q_s)
-    norm = model.quats[rows].norm(dim=-1, keepdim=True)
-    model.means[rows] = c
-    model.quats[rows] = quat_normalize(q_c) * norm
+    return _apply(dq_inverse(_table(model, times)), idx, model.bind_w[rows], x_s, q_s)
 
 
 @torch.no_grad()
-def anchor_to_seed_time_(model, pos_keys_before: torch.Tensor, rot_keys_before: torch.Tensor) -> None:
-    """After an optimiser step: re-express the :func:`anchored_rows` so that at their seed
-    times the nodes' current keys put them where ``pos_keys_before [N, K, 3]`` /
-    ``rot_keys_before [N, K, 4]`` did (their own trained centres included)."""
+def _write_(model, rows: torch.Tensor, means: torch.Tensor, quats: torch.Tensor) -> None:
+    """Set ``rows`` of the centres and rotations; the rotations keep their norm (Adam's state
+    is in it)."""
+    norm = model.quats[rows].norm(dim=-1, keepdim=True)
+    model.means[rows] = means
+    model.quats[rows] = quat_normalize(quats) * norm
+
+
+def to_seed_frame_(model) -> None:
+    """Canonical -> seed frame, in place, for the :func:`anchored_rows` (each row's centre and
+    rotation become its world pose at its seed time)."""
     rows = anchored_rows(model)
     if len(rows):
-        index = _seed_index(model, rows)  # the same rows and binding before and after the step
-        restore_seed_poses_(model, rows, *seed_poses(model, rows, pos_keys_before, rot_keys_before, index), index)
+        _write_(model, rows, *seed_poses(model, rows))
+
+
+def to_canonical_(model) -> None:
+    """Seed frame -> canonical, in place, for the :func:`anchored_rows`, with the model's current
+    keys and binding (the inverse of :func:`to_seed_frame_`)."""
+    rows = anchored_rows(model)
+    if len(rows):
+        _write_(model, rows, *canonical_poses(model, rows, model.means[rows], model.quats[rows]))
+
+
+def hold_seed_frame_(model, held: bool, hold: bool) -> bool:
+    """Convert ``model`` (in the seed frame if ``held``) so that it is in the seed frame if
+    ``hold``, canonical otherwise; returns ``hold``."""
+    if hold and not held:
+        to_seed_frame_(model)
+    elif held and not hold:
+        to_canonical_(model)
+    return hold
 
 
 @contextmanager
-def seed_poses_kept(model, active: bool = True):
-    """Keep the :func:`anchored_rows` at their seed-time poses across a block that rebinds
-    the Gaussians or renumbers the nodes (rows themselves must not change inside it)."""
+def canonical_view(model, active: bool = True):
+    """Inside the block a model held in its seed frame (``active``) shows canonical poses (for a
+    rebind, node densification, a render, an export); after it every held row is back at
+    exactly the seed-frame pose it had, whatever the block did to the binding or the node
+    numbering (rows themselves must not change inside it)."""
     if not active:
         yield
         return
     rows = anchored_rows(model)
-    pose = seed_poses(model, rows) if len(rows) else None
-    yield
-    if pose is not None:
-        restore_seed_poses_(model, anchored_rows(model), *pose)
+    kept = (model.means[rows].detach().clone(), model.quats[rows].detach().clone())
+    to_canonical_(model)
+    try:
+        yield
+    finally:
+        with torch.no_grad():
+            model.means[rows] = kept[0]
+            model.quats[rows] = kept[1]
 
 
-def deform_seed_relative(model, t: float, dq_nodes: torch.Tensor, index: torch.Tensor):
-    """Centres ``[L, 3]`` and rotations ``[L, 4]`` of rows ``index [L]`` at time ``t``.
+def deform_seed_frame(model, t: float, dq_nodes: torch.Tensor, index: torch.Tensor, relative: bool = True):
+    """Centres ``[L, 3]`` and rotations ``[L, 4]`` at time ``t`` of rows ``index [L]`` of a model
+    held in its seed frame (:func:`to_seed_frame_`).
 
-    The values of :meth:`~engine.train.model.DynamicScene.deform`; for the rows with a
-    lifespan the gradient is that of ``B(t) B(t_s)^-1 sg[B(t_s)] c``: the node keys learn
-    only a Gaussian's motion relative to its seed frame (none at the seed frame itself);
-    centres and rotations get their usual gradient. ``dq_nodes [N, 8]``: node transforms at
-    ``t`` (:meth:`~engine.train.model.DynamicScene.node_dq`).
+    The rows with a lifespan move by ``B(t) B(t_s)^-1`` from their seed-frame pose (at ``t =
+    t_s`` the pose is the row's own, to float rounding); the others deform as in
+    :meth:`~engine.train.model.DynamicScene.deform`. ``dq_nodes [N, 8]``: node transforms at
+    ``t`` (:meth:`~engine.train.model.DynamicScene.node_dq`). ``relative``: the keys learn through
+    both transforms, i.e. only the motion relative to the seed frame (what the render needs: the
+    seed frame's own pixels cannot pull its keys); False: through ``B(t)`` alone, as for a
+    canonical Gaussian (the pull of the Gaussians onto the moving pixels of other frames,
+    ``Objective.on_mask``, which moves the keys at ``t`` to bring them there).
     """
     life = model.gauss_lifespan[index] > 0
     if not _holds(model) or not bool(life.any()):
         return model.deform(t, dq_nodes=dq_nodes, index=index)
     rows_l, rows_o = index[life], index[~life]
     times, idx_s = _seed_index(model, rows_l)
-    table = _table(model, times, model.pos_keys, model.rot_keys)  # differentiable in the keys
+    table = _table(model, times, model.pos_keys, model.rot_keys) if relative else _table(model, times)
     w_l = model.bind_w[rows_l]
-    x_s, q_s = _apply(table.detach(), idx_s, w_l, model.means[rows_l], model.quats[rows_l])
-    c, q_c = _apply(dq_inverse(table), idx_s, w_l, x_s, q_s)
+    c, q_c = _apply(dq_inverse(table), idx_s, w_l, model.means[rows_l], model.quats[rows_l])
     x_l, q_l = _apply(dq_nodes, model.bind_idx[rows_l], w_l, c, q_c)
     if len(rows_o) == 0:
         return x_l, q_l

@@ -147,8 +147,8 @@ class GaussianDensifyStrategy:
             m.log_scales.data[split] -= math.log(1.6)
         keep = m.opacities() > cfg.opacity_prune
         # per-Gaussian buffers follow their rows: kept ones, then the copies' sources; the
-        # binding too, so that the rows still have theirs until the trainer rebinds (what
-        # keeps a seed-anchored Gaussian in place across the rebind, seed_anchor.py)
+        # binding too, so that the rows still have theirs until the trainer rebinds (a row
+        # held in its seed frame reaches canonical space through it, seed_anchor.py)
         rows = {name: getattr(m, name)[keep] for name in GAUSSIAN_BUFFERS + ("bind_idx", "bind_w")}
         if extra:
             rows = {name: torch.cat([v, getattr(m, name)[src]]) for name, v in rows.items()}

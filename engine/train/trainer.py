@@ -36,7 +36,7 @@ from .objective import Objective
 from .param_edit import make_optimizer  # noqa: F401  (re-exported)
 from .phases import no_phase
 from .render import render_scene, scene_colors
-from .seed_anchor import anchor_to_seed_time_, deform_seed_relative, seed_poses_kept
+from .seed_anchor import canonical_view, deform_seed_frame, hold_seed_frame_
 from .split import freeze_static_nodes
 from .strategy import GaussianDensifyStrategy, NodeDensifyStrategy
 from .warmup import warm_kernels
@@ -91,6 +91,7 @@ class Trainer:
         self.gen = torch.Generator(device="cpu")
         self.gen.manual_seed(self.cfg.seed)
         self.step = 0
+        self._seed_frame = False  # moving Gaussians held in their seed frame (seed_anchor.py)
         self.history: list[dict] = []
         self.train_seconds = 0.0
         self.initial_eval: dict | None = None
@@ -162,9 +163,9 @@ class Trainer:
             shown = shown_gaussians(m, t) if CULL_HIDDEN else None
             # node state at t once per step: the deformation, the track term and ARAP share it
             pos_t, rot_t, dq_nodes = m.node_state_dq(t)
-            if self._anchoring():  # keys learn each held Gaussian's motion relative to its seed frame
+            if self._seed_frame:  # keys learn each held Gaussian's motion relative to its seed frame
                 rows = shown if shown is not None else torch.arange(m.num_gaussians, device=m.means.device)
-                means_t, quats_t = deform_seed_relative(m, t, dq_nodes, rows)
+                means_t, quats_t = deform_seed_frame(m, t, dq_nodes, rows)
             else:
                 means_t, quats_t = m.deform(t, dq_nodes=dq_nodes, index=shown)
         with ph("sh"):  # the colour raster.render would compute from sh=..., timed on its own
@@ -180,8 +181,10 @@ class Trainer:
             out = render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, colors=colors,
                                backend=self.cfg.backend, extra=extra, time=t, index=shown)
         with ph("losses"):
+            held = ((lambda t, dq_nodes, index: deform_seed_frame(m, t, dq_nodes, index, relative=False))
+                    if self._seed_frame else None)
             loss, metrics, out = self.objective.terms(m, self.step, f, t, out, means_t, quats_t,
-                                                      (pos_t, rot_t, dq_nodes), shown=shown)
+                                                      (pos_t, rot_t, dq_nodes), shown=shown, deform=held)
             return loss, metrics, out, shown
 
     def _anchoring(self) -> bool:
@@ -189,6 +192,12 @@ class Trainer:
         (``cfg.lifespan_anchor``; from the end of the static warm-up, when the keys train)."""
         return (self.cfg.lifespan_anchor and self.model.pos_keys is not None
                 and self.step >= self.cfg.warmup_static_steps)
+
+    def _sync_seed_frame(self, hold: bool | None = None) -> None:
+        """Hold the moving Gaussians in their seed frame while :meth:`_anchoring` says so, or as
+        ``hold`` says (``engine/train/seed_anchor.py``; a checkpoint stores which)."""
+        self._seed_frame = hold_seed_frame_(self.model, self._seed_frame,
+                                            self._anchoring() if hold is None else hold)
 
     def _static_motion(self, pos_t: torch.Tensor, rot_t: torch.Tensor, state_t1=None) -> torch.Tensor:
         """The static-motion term now (:meth:`Objective.static_motion`)."""
@@ -199,7 +208,7 @@ class Trainer:
         """Gaussian densification, rebinding, then node densification (``cfg.node_densify``)."""
         with torch.no_grad():
             self.gaussian_strategy.densify(self.model, self.opt, self.gen)  # the binding follows the rows
-            with seed_poses_kept(self.model, self._anchoring()):
+            with canonical_view(self.model, self._seed_frame):
                 self._rebind()
                 if self.cfg.node_densify:
                     self._densify_nodes()
@@ -216,6 +225,7 @@ class Trainer:
             "identity": self.identity,
             "model": {k: v.detach().cpu() for k, v in self.model.state_dict().items()},
             "optimizer": self.opt.state_dict(),
+            "seed_frame": self._seed_frame,  # which parametrisation the held rows are in (seed_anchor.py)
             "gen": self._gen_state if getattr(self, "_gen_state", None) is not None else self.gen.get_state(),
             "torch_rng": torch.get_rng_state(),
             **self.gaussian_strategy.state_dict(),  # grad_accum, grad_count
@@ -255,6 +265,7 @@ class Trainer:
         self.train_seconds = float(state.get("train_seconds", 0.0))
         self.initial_eval = dict(state.get("initial_eval") or {}) or None
         self.objective.load_state_dict(state, dev)
+        self._seed_frame = bool(state.get("seed_frame", False))
 
     # ---------------------------------------------------------------- main loop
     def train(self) -> None:
@@ -275,6 +286,7 @@ class Trainer:
         if self.step < cfg.steps:  # starts the stage's clock: the first logged step has a measured ETA
             self.reporter.progress("train", self.step, cfg.steps)
         try:
+            self._sync_seed_frame()
             while self.step < cfg.steps:
                 if self._stop_requested:  # SIGINT/SIGTERM: stop at a step boundary
                     raise KeyboardInterrupt
@@ -293,25 +305,20 @@ class Trainer:
                         if group["name"] in motion_groups:
                             for p in group["params"]:
                                 p.grad = None
-                anchoring = self._anchoring()
-                if anchoring:
-                    keys_before = (self.model.pos_keys.detach().clone(), self.model.rot_keys.detach().clone())
                 with ph("optimizer"):
                     self.opt.step()
                     clamp_lifespans_(self.model, cfg)
-                if anchoring:
-                    with ph("anchor"):
-                        anchor_to_seed_time_(self.model, *keys_before)
                 with torch.no_grad(), ph("densify_stats"):
                     self.gaussian_strategy.step_post_backward(self.step, out, d.width, d.height, index=shown)
                 self.step += 1
+                self._sync_seed_frame()  # the step that starts the anchoring converts the model
                 # the step's frame draw is done: a checkpoint from here on stores the sampler
                 # state after it, so a resume draws the next step's frame, not this one again
                 self._gen_state = None
                 if cfg.densify_from <= self.step < cfg.densify_until and self.step % cfg.densify_every == 0:
                     self._densify()
                 elif cfg.rebind_every and self.step % cfg.rebind_every == 0:
-                    with torch.no_grad(), seed_poses_kept(self.model, self._anchoring()):
+                    with torch.no_grad(), canonical_view(self.model, self._seed_frame):
                         self._rebind()
                 if cfg.opacity_reset_every and self.step % cfg.opacity_reset_every == 0 and self.step < cfg.densify_until:
                     self.gaussian_strategy.reset_opacity(self.model, self.opt)
@@ -333,6 +340,7 @@ class Trainer:
             path = self.save_checkpoint()
             raise Cancelled(f"training stopped at step {self.step}; checkpoint saved to {path}") from None
         finally:
+            self._sync_seed_frame(False)  # canonical again, after any checkpoint (evaluation, export)
             torch.utils.deterministic.fill_uninitialized_memory = previous_fill
             self._restore_stop_handlers(previous)
         self.train_seconds += time.perf_counter() - t_start
@@ -360,17 +368,20 @@ class Trainer:
     # ---------------------------------------------------------------- evaluation
     def render_frame(self, f: int, t: float | None = None):
         """Frame ``f`` rendered now (:func:`engine.train.evaluation.render_frame`)."""
-        return render_frame(self.model, self.data, f, t, self.cfg.backend, cull=CULL_HIDDEN)
+        with canonical_view(self.model, self._seed_frame):
+            return render_frame(self.model, self.data, f, t, self.cfg.backend, cull=CULL_HIDDEN)
 
     def evaluate(self, idx: torch.Tensor | None = None) -> dict:
         """PSNR / SSIM (and masked PSNR where a fg prior exists) on frames ``idx`` (default: val)."""
         idx = self.data.val_idx if idx is None else idx
-        return evaluate_frames(self.model, self.data, idx, self.cfg.backend, cull=CULL_HIDDEN)
+        with canonical_view(self.model, self._seed_frame):
+            return evaluate_frames(self.model, self.data, idx, self.cfg.backend, cull=CULL_HIDDEN)
 
     # ---------------------------------------------------------------- export
     def export_bundle(self, metrics: dict | None = None) -> Path:
         m, d = self.model, self.data
-        nodes, gaussians = bundle_arrays(m)
+        with torch.no_grad(), canonical_view(m, self._seed_frame):  # the bundle holds canonical poses
+            nodes, gaussians = bundle_arrays(m)
         frames, cams = bundle_cameras(d)
         scene = B.new_scene(int(frames.min()), int(frames.max()), d.fps, cams, config=self.cfg.to_dict(),
                             stats={"steps": self.step, "gaussians": m.num_gaussians, "nodes": m.num_nodes,
