@@ -286,9 +286,10 @@ class Objective:
             dyn = dyn[torch.randperm(len(dyn), generator=self.gen)[:4096].to(dyn.device)]
         if shown is None:
             centres = torch.index_select(means_t, 0, dyn)
+        elif deform is not None:
+            centres = deform(t, dq_nodes, dyn)[0]
         else:
-            centres = (deform or (lambda t, dq_nodes, index: m.deform(t, dq_nodes=dq_nodes, index=index)))(
-                t, dq_nodes, dyn)[0]
+            centres = m.deform(t, dq_nodes=dq_nodes, index=dyn)[0]
         return on_mask_term(centres, d.K[f], d.w2c[f], self.mask_dist[f], float(d.width) / 100.0)
 
     # ---------------------------------------------------------------- static motion
