@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import time
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -181,8 +182,8 @@ class Trainer:
             out = render_scene(m, means_t, quats_t, d.K[f], d.w2c[f], d.width, d.height, colors=colors,
                                backend=self.cfg.backend, extra=extra, time=t, index=shown)
         with ph("losses"):
-            held = ((lambda t, dq_nodes, index: deform_seed_frame(m, t, dq_nodes, index, relative=False))
-                    if self._seed_frame else None)
+            # the pull onto the moving pixels moves held rows too, the keys learning through B(t) alone
+            held = partial(deform_seed_frame, m, relative=False) if self._seed_frame else None
             loss, metrics, out = self.objective.terms(m, self.step, f, t, out, means_t, quats_t,
                                                       (pos_t, rot_t, dq_nodes), shown=shown, deform=held)
             return loss, metrics, out, shown
