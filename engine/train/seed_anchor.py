@@ -53,16 +53,6 @@ def anchored_rows(model) -> torch.Tensor:
     return torch.nonzero(model.gauss_lifespan > 0).squeeze(1)
 
 
-def node_dq_at_times(model, pos_keys: torch.Tensor, rot_keys: torch.Tensor, times: torch.Tensor) -> torch.Tensor:
-    """Node transforms ``[S, N, 8]`` at ``times [S]`` for the keys ``pos_keys [N, K, 3]``,
-    ``rot_keys [N, K, 4]`` on ``model``'s key times (Catmull-Rom, as
-    :meth:`~engine.train.model.DynamicScene.node_states`); differentiable in the keys."""
-    basis = model.times_basis(times.tolist()).to(pos_keys)
-    pos = torch.einsum("sk,nkc->snc", basis, pos_keys)
-    rot = quat_normalize(torch.einsum("sk,nkc->snc", basis, rot_keys))
-    return node_transforms_dq(model.node_centers.expand_as(pos), pos, rot)
-
-
 def _seed_index(model, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The distinct seed times ``[S]`` of ``rows`` and each row's binding ``[A, K]`` into an
     ``[S*N, 8]`` table of the node transforms at those times (so one blend serves Gaussians
@@ -71,13 +61,14 @@ def _seed_index(model, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return times, model.bind_idx[rows] + (which * model.num_nodes)[:, None]
 
 
-def _table(model, times: torch.Tensor, pos_keys: torch.Tensor | None = None,
-           rot_keys: torch.Tensor | None = None) -> torch.Tensor:
-    """:func:`node_dq_at_times` as one ``[S*N, 8]`` table, with the model's current keys
-    (detached) unless others are given."""
-    pos_keys = model.pos_keys.detach() if pos_keys is None else pos_keys
-    rot_keys = model.rot_keys.detach() if rot_keys is None else rot_keys
-    return node_dq_at_times(model, pos_keys, rot_keys, times).reshape(-1, 8)
+def _table(model, times: torch.Tensor, keys_learn: bool = False) -> torch.Tensor:
+    """The node transforms at ``times [S]`` as one ``[S*N, 8]`` table
+    (:meth:`~engine.train.model.DynamicScene.node_states`), differentiable in the keys only if
+    ``keys_learn``."""
+    with torch.set_grad_enabled(keys_learn and torch.is_grad_enabled()):
+        pos, rot = model.node_states(times.tolist())  # [N, S, 3], [N, S, 4]
+        dq = node_transforms_dq(model.node_centers[:, None].expand_as(pos), pos, rot)
+    return dq.transpose(0, 1).reshape(-1, 8)
 
 
 def _apply(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, means: torch.Tensor, quats: torch.Tensor):
@@ -90,22 +81,19 @@ def _apply(table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor, means: torch
 
 
 @torch.no_grad()
-def seed_poses(model, rows: torch.Tensor, pos_keys: torch.Tensor | None = None,
-               rot_keys: torch.Tensor | None = None, index=None) -> tuple[torch.Tensor, torch.Tensor]:
+def seed_poses(model, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """World centres ``[A, 3]`` and unit rotations ``[A, 4]`` of canonical ``rows`` at their
-    seed times (with the keys given, default the model's own; ``index``: :func:`_seed_index` of
-    ``rows`` when the caller has it)."""
-    times, idx = _seed_index(model, rows) if index is None else index
-    return _apply(_table(model, times, pos_keys, rot_keys), idx, model.bind_w[rows], model.means[rows],
-                  model.quats[rows])
+    seed times."""
+    times, idx = _seed_index(model, rows)
+    return _apply(_table(model, times), idx, model.bind_w[rows], model.means[rows], model.quats[rows])
 
 
 @torch.no_grad()
-def canonical_poses(model, rows: torch.Tensor, x_s: torch.Tensor, q_s: torch.Tensor,
-                    index=None) -> tuple[torch.Tensor, torch.Tensor]:
+def canonical_poses(model, rows: torch.Tensor, x_s: torch.Tensor,
+                    q_s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The canonical centres ``[A, 3]`` and unit rotations ``[A, 4]`` that the model's current
     keys and binding put at ``x_s [A, 3]`` / ``q_s [A, 4]`` at the seed times of ``rows``."""
-    times, idx = _seed_index(model, rows) if index is None else index
+    times, idx = _seed_index(model, rows)
     # the blend of the inverted node transforms is the inverse of the blend (DQB is linear
     # in the transforms, and the conjugate keeps norms and hemispheres)
     return _apply(dq_inverse(_table(model, times)), idx, model.bind_w[rows], x_s, q_s)
@@ -184,7 +172,7 @@ def deform_seed_frame(model, t: float, dq_nodes: torch.Tensor, index: torch.Tens
         return model.deform(t, dq_nodes=dq_nodes, index=index)
     rows_l, rows_o = index[life], index[~life]
     times, idx_s = _seed_index(model, rows_l)
-    table = _table(model, times, model.pos_keys, model.rot_keys) if relative else _table(model, times)
+    table = _table(model, times, keys_learn=relative)
     w_l = model.bind_w[rows_l]
     c, q_c = _apply(dq_inverse(table), idx_s, w_l, model.means[rows_l], model.quats[rows_l])
     x_l, q_l = _apply(dq_nodes, model.bind_idx[rows_l], w_l, c, q_c)
