@@ -107,6 +107,7 @@ class TrainConfig:
                                          # nodes only and are seeded from the moving pixels of every frame
     dynamic_threshold: float = 0.5       # dynamic prior at or above this = moving (nodes, Gaussians, tracks)
     dynamic_gaussians: int = 6000        # Gaussians seeded on moving pixels, spread over all training frames
+    dynamic_opacity: float = 0.8         # ... their initial opacity (the static ones' is 0.3)
     lifespan: str = "auto"               # moving Gaussians visible around their seed frame only (engine/train/
                                          # lifespan.py): on | off | auto (on unless the camera translates and the
                                          # clip has held-out cameras of its own)
@@ -242,6 +243,8 @@ class TrainConfig:
                 "lifespan_seed_frames", "lifespan_seed_max", "min_steps_per_frame", "lifespan_steps_per_frame"]:
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
+        if not 0 < self.dynamic_opacity < 1:  # stored as a logit
+            bad("dynamic_opacity", "must be between 0 and 1 (exclusive)")
         if not 0 < self.lifespan_min <= 1 <= self.lifespan_max:
             bad("lifespan_min", "and lifespan_max must satisfy 0 < lifespan_min <= 1 <= lifespan_max")
         if not 0 <= self.node_path_chain <= 1:

@@ -96,8 +96,9 @@ def dynamic_gaussians(data: TrainingData, cfg: TrainConfig, gen: torch.Generator
     """Seed ``cfg.dynamic_gaussians`` Gaussians on the moving pixels of *every* training frame.
 
     Each frame gets a share proportional to its moving area (so a small object is not
-    oversampled), drawn uniformly among its pixels with the dynamic prior at least
-    ``cfg.dynamic_threshold``. Their footprint matches the density: ~``sqrt(area / n)``
+    oversampled), drawn among its pixels with the dynamic prior at least
+    ``cfg.dynamic_threshold``, each pixel once until every one has a Gaussian
+    (:func:`distinct_pixels`). Their footprint matches the density: ~``sqrt(area / n)``
     pixels. Returns ``(world [D, 3], colours [D, 3], scales [D, 3], times [D])``; empty
     without a prior or moving pixels.
     """
@@ -117,12 +118,25 @@ def dynamic_gaussians(data: TrainingData, cfg: TrainConfig, gen: torch.Generator
         if n_f <= 0:
             continue
         ys, xs = torch.nonzero(m_f, as_tuple=True)
-        pick = torch.randint(0, len(ys), (n_f,), generator=gen, device="cpu").to(ys.device)
+        pick = distinct_pixels(len(ys), n_f, gen).to(ys.device)
         footprint = math.sqrt(len(ys) / n_f)
         out.append(_back_project(data, f, ys[pick], xs[pick], footprint))
     if not out:
         return empty
     return tuple(torch.cat(parts) for parts in zip(*out))
+
+
+def distinct_pixels(available: int, n: int, gen: torch.Generator) -> torch.Tensor:
+    """``n`` indices into ``available`` pixels ``[n]``: a random order of all of them, repeated
+    (each pass reshuffled) while ``n`` asks for more.
+
+    Why not ``n`` independent draws: with replacement ~37 % of a frame's moving pixels get no
+    Gaussian of their own when ``n`` equals their count, and a moving Gaussian with a lifespan
+    learns only on the steps that draw its frame (~30 in a run), so the seeds' cover is most
+    of what its frame shows (docs/benchmarks.md, *Seeds that cover their frame*).
+    """
+    passes = [torch.randperm(available, generator=gen, device="cpu") for _ in range(-(-n // available))]
+    return torch.cat(passes)[:n]
 
 
 class _NodeSubset(torch.nn.Module):
@@ -228,7 +242,10 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         cols, scl = torch.cat([s_cols, d_cols]), torch.cat([s_scl, d_scl])
         g_dyn = torch.cat([torch.zeros(len(s_pts), dtype=torch.bool, device=dev),
                            torch.ones(len(d_pts), dtype=torch.bool, device=dev)])
-    model = DynamicScene(canon, cols.clamp(0, 1), scl, torch.full((len(canon),), 0.3, device=dev), centers,
+    opac = torch.full((len(canon),), 0.3, device=dev)
+    if g_dyn is not None:  # opaque: each covers its own pixel (distinct_pixels), not a third of it
+        opac[g_dyn] = cfg.dynamic_opacity
+    model = DynamicScene(canon, cols.clamp(0, 1), scl, opac, centers,
                          radii, key_times, pos_keys, rot_keys, sh_degree=cfg.sh_degree,
                          motion=cfg.motion, bind_k=cfg.bind_k, graph_idx=graph, node_p_dyn=p_dyn,
                          extent=data.extent)
