@@ -107,7 +107,6 @@ class TrainConfig:
                                          # nodes only and are seeded from the moving pixels of every frame
     dynamic_threshold: float = 0.5       # dynamic prior at or above this = moving (nodes, Gaussians, tracks)
     dynamic_gaussians: int = 6000        # Gaussians seeded on moving pixels, spread over all training frames
-    dynamic_opacity: float = 0.8         # ... their initial opacity (the static ones' is 0.3)
     lifespan: str = "auto"               # moving Gaussians visible around their seed frame only (engine/train/
                                          # lifespan.py): on | off | auto (on unless the camera translates and the
                                          # clip has held-out cameras of its own)
@@ -118,6 +117,8 @@ class TrainConfig:
                                          # proportionally more (the same per frame; 0 = never more),
     lifespan_seed_max: int = 120_000     # ... up to this many in all (~300 frames' worth: the step time grows
                                          # with every Gaussian, shown or not; a longer clip gets fewer per frame)
+    lifespan_seed_opacity: float = 0.8   # ... each seeded at this opacity (0.3 the others: docs/benchmarks.md,
+                                         # *Seeds that cover their frame*)
     lifespan_anchor: bool = False        # ... each one held at its seed frame while the node keys train (engine/train/
                                          # seed_anchor.py): sharp training frames; the keys learn motion between frames
     lifespan_min: float = 0.5            # ... each one's lifespan is learned (lr_lifespan), within these factors of
@@ -243,8 +244,8 @@ class TrainConfig:
                 "lifespan_seed_frames", "lifespan_seed_max", "min_steps_per_frame", "lifespan_steps_per_frame"]:
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
-        if not 0 < self.dynamic_opacity < 1:  # stored as a logit
-            bad("dynamic_opacity", "must be between 0 and 1 (exclusive)")
+        if not 0 < self.lifespan_seed_opacity < 1:  # stored as a logit
+            bad("lifespan_seed_opacity", "must be between 0 and 1 (exclusive)")
         if not 0 < self.lifespan_min <= 1 <= self.lifespan_max:
             bad("lifespan_min", "and lifespan_max must satisfy 0 < lifespan_min <= 1 <= lifespan_max")
         if not 0 <= self.node_path_chain <= 1:

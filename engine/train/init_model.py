@@ -243,8 +243,11 @@ def build_model(data: TrainingData, nodes: B.NodeArrays, cfg: TrainConfig, gen: 
         g_dyn = torch.cat([torch.zeros(len(s_pts), dtype=torch.bool, device=dev),
                            torch.ones(len(d_pts), dtype=torch.bool, device=dev)])
     opac = torch.full((len(canon),), 0.3, device=dev)
-    if g_dyn is not None:  # opaque: each covers its own pixel (distinct_pixels), not a third of it
-        opac[g_dyn] = cfg.dynamic_opacity
+    if g_dyn is not None and life > 0:
+        # a frame's own seeds, shown around it only: opaque, each covers its pixel (distinct_pixels)
+        # rather than a third of it. Seeds shown at every time stay at 0.3: dozens of frames' seeds
+        # of one object overlap there, and opaque ones cost the small-motion scenes 0.3 dB
+        opac[g_dyn] = cfg.lifespan_seed_opacity
     model = DynamicScene(canon, cols.clamp(0, 1), scl, opac, centers,
                          radii, key_times, pos_keys, rot_keys, sh_degree=cfg.sh_degree,
                          motion=cfg.motion, bind_k=cfg.bind_k, graph_idx=graph, node_p_dyn=p_dyn,

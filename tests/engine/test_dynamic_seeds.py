@@ -1,5 +1,5 @@
 """The moving Gaussians' seeds (engine/train/init_model.py): each frame's moving pixels
-covered once before any is seeded twice, and opaque from the start."""
+covered once before any is seeded twice, and a frame's own seeds opaque from the start."""
 
 from __future__ import annotations
 
@@ -51,12 +51,16 @@ def test_a_frame_with_as_many_seeds_as_moving_pixels_has_one_on_each():
         assert int(moving[k].sum()) - int(hit.sum()) <= 1  # and all of them
 
 
-def test_moving_seeds_start_at_their_own_opacity():
+def test_seeds_with_a_lifespan_start_opaque_and_the_others_do_not():
+    """A frame's own seeds (lifespans on) start at ``lifespan_seed_opacity``; without lifespans the
+    moving seeds, shown at every time, start at 0.3 like the static ones."""
     data, truth = make_scene()
-    cfg = preset_config("preview", gaussians_per_frame=800, init_keyframes=4, num_nodes=25, dynamic_gaussians=600,
-                        dynamic_opacity=0.9)
-    model = build_model(data, make_nodes(truth), cfg, torch.Generator().manual_seed(0))
-    assert model.is_split
-    op = model.opacities()
-    torch.testing.assert_close(op[model.gauss_dyn], torch.full((int(model.gauss_dyn.sum()),), 0.9))
-    torch.testing.assert_close(op[~model.gauss_dyn], torch.full((int((~model.gauss_dyn).sum()),), 0.3))
+    kw = dict(gaussians_per_frame=800, init_keyframes=4, num_nodes=25, dynamic_gaussians=600,
+              lifespan_seed_opacity=0.9)
+    for lifespan, want in (("on", 0.9), ("off", 0.3)):
+        cfg = preset_config("preview", lifespan=lifespan, **kw)
+        model = build_model(data, make_nodes(truth), cfg, torch.Generator().manual_seed(0))
+        assert model.is_split and bool((model.gauss_lifespan[model.gauss_dyn] > 0).all()) == (lifespan == "on")
+        op = model.opacities()
+        torch.testing.assert_close(op[model.gauss_dyn], torch.full((int(model.gauss_dyn.sum()),), want))
+        torch.testing.assert_close(op[~model.gauss_dyn], torch.full((int((~model.gauss_dyn).sum()),), 0.3))
