@@ -37,7 +37,7 @@ def test_a_frame_with_as_many_seeds_as_moving_pixels_has_one_on_each():
     moving = torch.stack([_moving_pixels(data, probe, int(f)) for f in data.train_idx])
     area = int(moving.sum())
     cfg = preset_config("preview", dynamic_gaussians=area)
-    pts, _, _, tms = dynamic_gaussians(data, cfg, torch.Generator().manual_seed(0))
+    pts, _, _, tms = dynamic_gaussians(data, cfg, torch.Generator().manual_seed(0), distinct=True)
     assert len(pts) >= area - len(data.train_idx)  # each frame's floor() share loses < 1 seed
     for k, f in enumerate(data.train_idx.tolist()):
         sel = tms == data.times[f]
@@ -51,9 +51,10 @@ def test_a_frame_with_as_many_seeds_as_moving_pixels_has_one_on_each():
         assert int(moving[k].sum()) - int(hit.sum()) <= 1  # and all of them
 
 
-def test_seeds_with_a_lifespan_start_opaque_and_the_others_do_not():
-    """A frame's own seeds (lifespans on) start at ``lifespan_seed_opacity``; without lifespans the
-    moving seeds, shown at every time, start at 0.3 like the static ones."""
+def test_seeds_with_a_lifespan_cover_their_frame_and_start_opaque():
+    """A frame's own seeds (lifespans on) cover its moving pixels evenly (no pixel seeded twice
+    while another has none) and start at ``lifespan_seed_opacity``; without lifespans the moving
+    seeds, shown at every time, start at 0.3 like the static ones."""
     data, truth = make_scene()
     kw = dict(gaussians_per_frame=800, init_keyframes=4, num_nodes=25, dynamic_gaussians=600,
               lifespan_seed_opacity=0.9)
@@ -64,3 +65,18 @@ def test_seeds_with_a_lifespan_start_opaque_and_the_others_do_not():
         op = model.opacities()
         torch.testing.assert_close(op[model.gauss_dyn], torch.full((int(model.gauss_dyn.sum()),), want))
         torch.testing.assert_close(op[~model.gauss_dyn], torch.full((int((~model.gauss_dyn).sum()),), 0.3))
+    # with lifespans the seeds, moved to their own time, sit on their seed pixels: count them per
+    # moving pixel of each frame
+    cfg = preset_config("preview", lifespan="on", **kw)
+    model = build_model(data, make_nodes(truth), cfg, torch.Generator().manual_seed(0))
+    dyn = torch.nonzero(model.gauss_dyn).squeeze(1)
+    with torch.no_grad():
+        for f in data.train_idx.tolist():
+            t = float(data.times[f])
+            rows = dyn[model.gauss_t_center[dyn] == t]
+            uv = project(data.K[f], data.w2c[f], model.deform(t)[0][rows])[0]
+            px = torch.floor(uv + 1e-3).long()
+            counts = torch.bincount(px[:, 1] * data.width + px[:, 0], minlength=data.height * data.width)
+            moving = _moving_pixels(data, cfg, f).flatten()
+            assert int(counts[~moving].sum()) == 0
+            assert int(counts[moving].max()) - int(counts[moving].min()) <= 1, (f, counts[moving].tolist())
