@@ -7,7 +7,7 @@ import torch
 
 from engine.geometry.camera import project
 from engine.train.config import preset_config
-from engine.train.init_model import build_model, distinct_pixels, dynamic_gaussians, initial_gaussians
+from engine.train.init_model import build_model, distinct_pixels, dynamic_gaussians
 
 from .synthetic_training import make_nodes, make_scene
 
