@@ -227,7 +227,7 @@ def check_gaussians(g: GaussianArrays, path: str | os.PathLike | None = None) ->
 # ----------------------------------------------------------------------------------
 _NODE_REQUIRED = ("centers", "radii", "key_times", "pos_keys", "pos_tangents", "rot_keys", "rot_tangents")
 _NODE_OPTIONAL = ("p_dyn", "bind_idx", "bind_w", "graph_idx", "pos_tangents_in", "rot_tangents_in", "key_mask",
-                  "gauss_t_center", "gauss_lifespan")
+                  "gauss_t_center", "gauss_lifespan", "gauss_view_origin", "gauss_view_angle")
 
 
 @dataclasses.dataclass
@@ -261,6 +261,13 @@ class NodeArrays:
         ``gauss_lifespan > 0`` and ``opacity`` where it is 0 (always visible). Training
         writes them when moving Gaussians live around the frame they were seeded from
         (``TrainConfig.lifespan``, :mod:`engine.train.lifespan`).
+    gauss_view_origin (G, 3), gauss_view_angle (G,) : optional, both or neither, rows as
+        ``bind_idx``: a view-bound Gaussian's seed camera centre (world) and angle scale
+        (radians; 0 = not view-bound). Seen from a camera centre ``c`` its opacity is also
+        multiplied by ``exp(-0.5 (sin(a) / gauss_view_angle)^2)``, ``a`` the angle at the
+        deformed Gaussian between the rays from ``gauss_view_origin`` and from ``c``
+        (:mod:`engine.train.shot_detail`: per-frame detail of the moving things, trusted only
+        near the camera that saw it).
     """
 
     centers: np.ndarray
@@ -279,6 +286,8 @@ class NodeArrays:
     key_mask: np.ndarray | None = None
     gauss_t_center: np.ndarray | None = None
     gauss_lifespan: np.ndarray | None = None
+    gauss_view_origin: np.ndarray | None = None
+    gauss_view_angle: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -350,6 +359,16 @@ class NodeArrays:
                                      "(one value per bound Gaussian)", path, fix)
             if (a["gauss_lifespan"] < 0).any():
                 raise InputError("gauss_lifespan must be >= 0 (0 = always visible)", path, fix)
+        if ("gauss_view_origin" in a) != ("gauss_view_angle" in a):
+            raise InputError("gauss_view_origin and gauss_view_angle come together (one is missing)", path, fix)
+        if "gauss_view_angle" in a:
+            g = a["bind_idx"].shape[0] if "bind_idx" in a else -1
+            for key, shape in (("gauss_view_origin", (g, 3)), ("gauss_view_angle", (g,))):
+                if a[key].shape != shape:
+                    raise InputError(f"array {key!r} has shape {a[key].shape}; expected {shape} "
+                                     "(one per bound Gaussian)", path, fix)
+            if (a["gauss_view_angle"] < 0).any():
+                raise InputError("gauss_view_angle must be >= 0 (0 = seen alike from everywhere)", path, fix)
         if "graph_idx" in a:
             gi = a["graph_idx"]
             if gi.ndim != 2 or gi.shape[0] != n or not np.issubdtype(gi.dtype, np.integer) or (

@@ -34,6 +34,18 @@ def camera_centers(w2c: torch.Tensor) -> torch.Tensor:
     return -(R.transpose(-1, -2) @ w2c[..., :3, 3].unsqueeze(-1)).squeeze(-1)
 
 
+def ray_parallax_sin(points: torch.Tensor, origins: torch.Tensor, center: torch.Tensor) -> torch.Tensor:
+    """Sine of the angle ``[P]`` at each of ``points [P, 3]`` between the ray from its own
+    ``origins [P, 3]`` and the ray from ``center [3]`` (0 when they are one line; either ray
+    of zero length counts as 0). How far a point seen from ``origins`` may move in the view
+    from ``center`` when its depth along the first ray is uncertain: a depth error ``e``
+    shifts it by about ``e sin(angle)`` across the second ray."""
+    a = points - origins
+    b = points - center
+    cross = torch.linalg.cross(a, b, dim=-1).norm(dim=-1)
+    return cross / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-20)
+
+
 #: camera centres within this fraction of the scene extent of each other: a camera that does not translate
 FIXED_CAMERA_TOL = 1e-4
 

@@ -133,6 +133,9 @@ def model_from_state(sd: dict, cfg, extent: float, device):
     sd.setdefault("gauss_t_center", torch.zeros(sd["means"].shape[0]))
     sd.setdefault("gauss_lifespan", torch.zeros(sd["means"].shape[0]))
     sd.setdefault("lifespan_log_scale", torch.zeros(sd["means"].shape[0]))  # before learned lifespans
+    # before view-bound Gaussians (shot_detail.py): none
+    sd.setdefault("gauss_view_origin", torch.zeros(sd["means"].shape[0], 3))
+    sd.setdefault("gauss_view_angle", torch.zeros(sd["means"].shape[0]))
     g = sd["means"].shape[0]
     # Rebuild the model with the checkpoint's shapes, then load exact values.
     nodes_keys = sd.get("pos_keys")

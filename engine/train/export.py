@@ -28,6 +28,9 @@ def bundle_arrays(model: DynamicScene) -> tuple[B.NodeArrays, B.GaussianArrays]:
     if bool((m.gauss_lifespan > 0).any()):  # bundles without lifespans stay as they were
         nodes.gauss_t_center = m.gauss_t_center.cpu().numpy()
         nodes.gauss_lifespan = m.lifespans().detach().cpu().numpy()  # as learned
+    if bool((m.gauss_view_angle > 0).any()):  # view-bound Gaussians (shot_detail.py)
+        nodes.gauss_view_origin = m.gauss_view_origin.cpu().numpy()
+        nodes.gauss_view_angle = m.gauss_view_angle.cpu().numpy()
     gaussians = B.GaussianArrays(means=m.means.detach().cpu().numpy(),
                                  quats=quat_normalize(m.quats.detach()).cpu().numpy(),
                                  log_scales=m.log_scales.detach().cpu().numpy(),

@@ -69,6 +69,9 @@ class DynamicScene(nn.Module):
     (``engine/train/split.py``; all True = one class, the model before the split);
     gauss_t_center [G], gauss_lifespan [G]: each Gaussian's lifespan as seeded, in engine
     time (:meth:`opacities_at`; lifespan 0 = always visible, the default).
+    gauss_view_origin [G, 3], gauss_view_angle [G]: a view-bound Gaussian's seed camera centre
+    and the parallax angle scale its opacity fades over away from that camera
+    (``engine/train/shot_detail.py``; angle 0 = seen alike from everywhere, the default).
 
     Parameters (per Gaussian, besides appearance and geometry)
     ----------------------------------------------------------
@@ -123,6 +126,8 @@ class DynamicScene(nn.Module):
         self.register_buffer("gauss_dyn", torch.ones(g, dtype=torch.bool, device=dev))
         self.register_buffer("gauss_t_center", torch.zeros(g, device=dev, dtype=dt))
         self.register_buffer("gauss_lifespan", torch.zeros(g, device=dev, dtype=dt))
+        self.register_buffer("gauss_view_origin", torch.zeros(g, 3, device=dev, dtype=dt))
+        self.register_buffer("gauss_view_angle", torch.zeros(g, device=dev, dtype=dt))
         self.lifespan_log_scale = nn.Parameter(torch.zeros(g, device=dev, dtype=dt))
         self.register_buffer("bind_idx", torch.zeros(g, self.bind_k, dtype=torch.long, device=dev))
         self.register_buffer("bind_w", torch.zeros(g, self.bind_k, device=dev, dtype=dt))
@@ -155,16 +160,26 @@ class DynamicScene(nn.Module):
             return self.gauss_lifespan * torch.exp(self.lifespan_log_scale)
         return self.gauss_lifespan[index] * torch.exp(self.lifespan_log_scale[index])
 
-    def opacities_at(self, t: float | None, index: torch.Tensor | None = None) -> torch.Tensor:
+    def opacities_at(self, t: float | None, index: torch.Tensor | None = None,
+                     means: torch.Tensor | None = None, view_center: torch.Tensor | None = None) -> torch.Tensor:
         """Opacity [G] at engine time ``t``: :meth:`opacities` times each Gaussian's lifespan
         window ``exp(-0.5 ((t - t_center) / lifespan)^2)`` (:meth:`lifespans`; 1 where the
         lifespan is 0, and everywhere when ``t`` is None). ``index [L]``: of those rows only
-        ([L]; the same values as the full tensor's rows)."""
+        ([L]; the same values as the full tensor's rows). With ``means`` (the rows' deformed
+        centres, ``[G, 3]`` or ``[L, 3]``) and ``view_center [3]`` (the camera centre), also the
+        view-bound Gaussians' fade (:func:`engine.train.shot_detail.view_fade`)."""
         opacity = self.opacities(index)
-        if t is None or not bool((self.gauss_lifespan > 0).any()):
-            return opacity
-        t_center = self.gauss_t_center if index is None else self.gauss_t_center[index]
-        return opacity * lifespan_window(float(t), t_center, self.lifespans(index))
+        if t is not None and bool((self.gauss_lifespan > 0).any()):
+            t_center = self.gauss_t_center if index is None else self.gauss_t_center[index]
+            opacity = opacity * lifespan_window(float(t), t_center, self.lifespans(index))
+        if means is not None and view_center is not None and bool((self.gauss_view_angle > 0).any()):
+            from .shot_detail import view_fade
+
+            origin, angle = self.gauss_view_origin, self.gauss_view_angle
+            if index is not None:
+                origin, angle = origin[index], angle[index]
+            opacity = opacity * view_fade(means.detach(), origin, angle, view_center)
+        return opacity
 
     def sh(self, index: torch.Tensor | None = None) -> torch.Tensor:
         """[G, M, 3] spherical-harmonic coefficients (``index [L]``: of those rows only)."""
@@ -432,5 +447,8 @@ def model_from_bundle(bundle, device="cpu") -> DynamicScene:
     if nd.gauss_lifespan is not None:
         m.gauss_t_center = t(nd.gauss_t_center)
         m.gauss_lifespan = t(nd.gauss_lifespan)
+    if nd.gauss_view_angle is not None:
+        m.gauss_view_origin = t(nd.gauss_view_origin)
+        m.gauss_view_angle = t(nd.gauss_view_angle)
     m.motion_source = cfg.get("motion", "spline")
     return m

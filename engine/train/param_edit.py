@@ -15,7 +15,7 @@ from .model import DynamicScene
 
 GAUSSIAN_PARAMS = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest", "lifespan_log_scale")
 #: per-Gaussian buffers (not optimised) that a row edit must carry along with the parameters
-GAUSSIAN_BUFFERS = ("gauss_dyn", "gauss_t_center", "gauss_lifespan")
+GAUSSIAN_BUFFERS = ("gauss_dyn", "gauss_t_center", "gauss_lifespan", "gauss_view_origin", "gauss_view_angle")
 NODE_PARAMS = ("pos_keys", "rot_keys")  # node_log_radii is a buffer (DynamicScene), edited beside them
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 from .. import raster
+from ..geometry.camera import camera_centers
 from ..raster.sh import sh_to_colors
 
 #: use the fused Numba SH colour (engine/train/fused_sh.py) where it applies
@@ -69,7 +70,9 @@ def render_scene(model, means: torch.Tensor, quats: torch.Tensor, K: torch.Tenso
     raster.RenderOutput with ``rgb [H, W, 3]``, ``alpha [H, W, 1]``, ``depth [H, W, 1]``,
     ``radii [G]`` and ``means2d [G, 2]`` (its ``.grad`` feeds densification).
     """
-    scales, opacities = model.scales(index), model.opacities_at(time, index)
+    # (the view-bound Gaussians fade with the parallax from their own camera: shot_detail.py)
+    scales = model.scales(index)
+    opacities = model.opacities_at(time, index, means=means, view_center=camera_centers(w2c))
     kwargs = dict(means=means, quats=quats, scales=scales, opacities=opacities, w2c=w2c, K=K,
                   width=width, height=height, background=background, backend=backend, extra=extra)
     if colors is not None:
