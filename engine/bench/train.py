@@ -265,8 +265,11 @@ def measure(data, nodes, cfg_overrides: dict, steps: int, warmup: int, out_dir) 
     # events, rebinds and checkpoints out of the timed window (densify is timed once below)
     start = base.densify_from + 1
     end = start + warmup + steps
+    # the main training step only: the shot-detail stage after it (engine/train/shot_detail.py)
+    # would run at the end of each train() call below
     cfg = preset_config("preview", **{**cfg_overrides, "steps": end, "checkpoint_every": 0, "rebind_every": 0,
-                                       "densify_every": end + 1, "densify_until": end + 1, "log_every": 10})
+                                       "densify_every": end + 1, "densify_until": end + 1, "log_every": 10,
+                                       "shot_detail": "off"})
     if cfg.device == "cuda":
         if not torch.cuda.is_available():
             raise SystemExit("--device cuda: torch sees no CUDA device")

@@ -124,6 +124,14 @@ class TrainConfig:
     lifespan_min: float = 0.5            # ... each one's lifespan is learned (lr_lifespan), within these factors of
     lifespan_max: float = 4.0            # lifespan_frames: short where its nodes lose the object, long where they
                                          # follow it (engine/train/lifespan.py)
+    shot_detail: str = "on"              # per-frame Gaussians of the moving things after training, fading with the
+                                         # parallax from the camera that saw them (engine/train/shot_detail.py): on | off
+    detail_steps_per_frame: float = 15.0 # ... trained this many steps per training frame (the seeds alone)
+    detail_seeds: int = 3000             # ... at most this many a frame, one per moving pixel before any twice
+    detail_opacity: float = 0.8          # ... each seeded at this opacity
+    detail_lifespan_frames: float = 0.5  # ... shown around its own frame (sigma in training-frame intervals)
+    detail_depth_error: float = 0.05     # ... its depth's relative uncertainty, and the parallax shift in pixels
+    detail_fade_px: float = 0.5          # (focal * depth_error * sin(angle)) at which it fades to exp(-0.5)
     num_nodes: int = 512                 # node budget for initialisation
     num_keys: int = 0                    # spline keyframes; 0 = one per ~4 frames, at least 4
     node_rotations: str = "tracks"       # initial node rotations: "tracks" (rigid rotation of each node's lifted
@@ -244,6 +252,14 @@ class TrainConfig:
                 "lifespan_seed_frames", "lifespan_seed_max", "min_steps_per_frame", "lifespan_steps_per_frame"]:
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
+        if self.shot_detail not in ("on", "off"):
+            bad("shot_detail", "must be 'on' or 'off'")
+        for key in ("detail_steps_per_frame", "detail_seeds", "detail_lifespan_frames", "detail_depth_error",
+                    "detail_fade_px"):
+            if not getattr(self, key) > 0:
+                bad(key, "must be > 0")
+        if not 0 < self.detail_opacity < 1:  # stored as a logit
+            bad("detail_opacity", "must be between 0 and 1 (exclusive)")
         if not 0 < self.lifespan_seed_opacity < 1:  # stored as a logit
             bad("lifespan_seed_opacity", "must be between 0 and 1 (exclusive)")
         if not 0 < self.lifespan_min <= 1 <= self.lifespan_max:

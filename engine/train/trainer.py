@@ -38,6 +38,7 @@ from .param_edit import make_optimizer  # noqa: F401  (re-exported)
 from .phases import no_phase
 from .render import render_scene, scene_colors
 from .seed_anchor import canonical_view, deform_seed_frame, hold_seed_frame_
+from .shot_detail import has_detail, stage_optimizer, train_detail
 from .split import freeze_static_nodes
 from .strategy import GaussianDensifyStrategy, NodeDensifyStrategy
 from .warmup import warm_kernels
@@ -256,7 +257,8 @@ class Trainer:
         dev = self.device
         model = CK.model_from_state(state["model"], self.cfg, self.data.extent, dev)
         self.model = model
-        self.opt = make_optimizer(model, self.cfg)
+        # a checkpoint of the shot-detail stage holds its seeds and the stage's optimiser
+        self.opt = stage_optimizer(model, self.cfg) if has_detail(model) else make_optimizer(model, self.cfg)
         self.opt.load_state_dict(CK.without_groups(state["optimizer"], ("node_log_radii",)))
         self.gen.set_state(state["gen"])
         torch.set_rng_state(state["torch_rng"])
@@ -333,6 +335,12 @@ class Trainer:
                     t_start = time.perf_counter()
                     self.save_checkpoint()
                 self._gen_state = None
+            # the shot-detail stage (engine/train/shot_detail.py; a no-op unless cfg.shot_detail),
+            # on the canonical model, with its own clock
+            self.train_seconds += time.perf_counter() - t_start
+            self._sync_seed_frame(False)
+            train_detail(self)
+            t_start = time.perf_counter()
         except KeyboardInterrupt:
             # A KeyboardInterrupt raised mid-step (no handler installed, e.g. off the
             # main thread) loses that step's work; the sampler state is rewound to the
@@ -385,7 +393,10 @@ class Trainer:
             nodes, gaussians = bundle_arrays(m)
         frames, cams = bundle_cameras(d)
         scene = B.new_scene(int(frames.min()), int(frames.max()), d.fps, cams, config=self.cfg.to_dict(),
-                            stats={"steps": self.step, "gaussians": m.num_gaussians, "nodes": m.num_nodes,
+                            stats={"steps": min(self.step, self.cfg.steps),
+                                   # the shot-detail stage's steps after them (shot_detail.py)
+                                   "detail_steps": max(self.step - self.cfg.steps, 0),
+                                   "gaussians": m.num_gaussians, "nodes": m.num_nodes,
                                    "train_seconds": round(self.train_seconds, 2),
                                    "history": self.history, **(metrics or {})},
                             extent=d.extent, **self.scene_extra)
@@ -421,7 +432,8 @@ class Trainer:
             self.reporter.log(line)
         path = self.export_bundle(metrics)
         CK.discard(self.ckpt_path)  # finished: a later --resume must not retrain over the bundle
-        return {"bundle": str(path), "steps": self.step, "gaussians": self.model.num_gaussians,
+        return {"bundle": str(path), "steps": min(self.step, self.cfg.steps),
+                "detail_steps": max(self.step - self.cfg.steps, 0), "gaussians": self.model.num_gaussians,
                 "nodes": self.model.num_nodes, **metrics}
 
 
