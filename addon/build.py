@@ -11,7 +11,8 @@
   ``ms_opacity`` FLOAT, ``ms_scale`` FLOAT_VECTOR linear σ, ``ms_rot`` QUATERNION wxyz,
   ``ms_index`` INT original Gaussian index, ``ms_center`` BOOLEAN, ``ms_aux`` INT; and
   ``ms_t_center`` / ``ms_lifespan`` FLOAT, engine time and σ, only for a bundle with
-  Gaussian lifespans, :func:`bundle_lifespans`);
+  Gaussian lifespans, :func:`bundle_lifespans`; ``ms_view_origin`` FLOAT_VECTOR / ``ms_view_angle``
+  FLOAT, only for a bundle with view-bound Gaussians, :func:`bundle_view_binding`);
 * a Geometry Nodes modifier after the Armature modifier. It makes a fresh point cloud
   (Points node + Sample Index of the deformed positions and ``ms_*`` attributes; Mesh to
   Points would copy the rig's N vertex groups onto every point, ~10 s/frame at 2000
@@ -121,11 +122,21 @@ def bundle_lifespans(nodes):
     return (np.asarray(nodes.gauss_t_center, np.float32), np.asarray(nodes.gauss_lifespan, np.float32))
 
 
-def set_gaussian_attributes(mesh, gaussians, keep, aux: bool, lifespans=None) -> None:
+def bundle_view_binding(nodes):
+    """``(origin (G, 3), angle (G,))`` float32 of a bundle with view-bound Gaussians (some
+    ``gauss_view_angle > 0``: per-frame detail that fades with the parallax from its own
+    camera, :mod:`engine.train.shot_detail`), else None."""
+    if nodes is None or nodes.gauss_view_angle is None or not (np.asarray(nodes.gauss_view_angle) > 0).any():
+        return None
+    return (np.asarray(nodes.gauss_view_origin, np.float32), np.asarray(nodes.gauss_view_angle, np.float32))
+
+
+def set_gaussian_attributes(mesh, gaussians, keep, aux: bool, lifespans=None, view=None) -> None:
     """Point attributes of the kept Gaussians (repeated on their aux vertices).
 
     ``lifespans``: :func:`bundle_lifespans` (all Gaussians' rows) or None; with it the mesh
-    also gets ``ms_t_center`` and ``ms_lifespan``.
+    also gets ``ms_t_center`` and ``ms_lifespan``. ``view``: :func:`bundle_view_binding` or
+    None; with it ``ms_view_origin`` and ``ms_view_angle``.
     """
     # The engine's colours are display-referred sRGB values; Blender shades in linear
     # light and applies the sRGB transform on output, so store them linearised.
@@ -139,8 +150,11 @@ def set_gaussian_attributes(mesh, gaussians, keep, aux: bool, lifespans=None) ->
     center = np.ones(g, dtype=bool)
     aux_idx = (g + AUX_AXES * np.arange(g)).astype(np.int32) if aux else np.zeros(g, np.int32)
     arrays = [colors, opac, scales, q, keep.astype(np.int32), center, aux_idx]
+    n_life = 2 if lifespans is not None else 0
     if lifespans is not None:
         arrays += [np.asarray(a, np.float32)[keep] for a in lifespans]
+    if view is not None:
+        arrays += [np.asarray(a, np.float32)[keep] for a in view]
     if aux:
         arrays = [np.concatenate([a, np.repeat(a, AUX_AXES, axis=0)]) for a in arrays]
         arrays[5][g:] = False
@@ -153,8 +167,11 @@ def set_gaussian_attributes(mesh, gaussians, keep, aux: bool, lifespans=None) ->
     _set_attr(mesh, "ms_index", "INT", idx)
     _set_attr(mesh, "ms_center", "BOOLEAN", center)
     _set_attr(mesh, "ms_aux", "INT", aux_idx)
-    for name, values in zip(("ms_t_center", "ms_lifespan"), arrays[7:]):
+    for name, values in zip(("ms_t_center", "ms_lifespan"), arrays[7:7 + n_life]):
         _set_attr(mesh, name, "FLOAT", values)
+    if view is not None:
+        _set_attr(mesh, "ms_view_origin", "FLOAT_VECTOR", arrays[7 + n_life], "vector")
+        _set_attr(mesh, "ms_view_angle", "FLOAT", arrays[8 + n_life])
     mesh.update()
 
 
@@ -338,7 +355,7 @@ def _build_gaussians(col, name, b, out, density, preview, with_rig) -> None:
         mesh_obj = rig.build_points_mesh(f"{name}Gaussians", pts, col)
     timings["rig"] = _time.perf_counter() - t
     t = _time.perf_counter()
-    set_gaussian_attributes(mesh_obj.data, gs, keep, aux, bundle_lifespans(nodes))
+    set_gaussian_attributes(mesh_obj.data, gs, keep, aux, bundle_lifespans(nodes), bundle_view_binding(nodes))
     mesh_obj["ms_gaussians"] = len(keep)
     timings["attributes"] = _time.perf_counter() - t
     t = _time.perf_counter()

@@ -17,6 +17,16 @@ Scene Time frame through the modifier's "Frame Start" / "Frame End" inputs (the 
 ``scene.json`` range, :func:`engine.bundle.time_of_frame`), so viewport and renders see it
 per frame. A lifespan of 0 gives a factor of exactly 1 (the Math node's divide returns 0
 on a zero divisor). Meshes without the attributes get the tree without these nodes.
+
+View-bound Gaussians: when the mesh carries ``ms_view_origin`` / ``ms_view_angle`` (per-frame
+detail trusted only near the camera that saw it, :mod:`engine.train.shot_detail`), the trees
+store on each point ``ms_view_dir``, the unit direction from its seed camera centre to its
+deformed position, and ``ms_view_angle``; the material multiplies alpha by
+``exp(−½ (sin(a) / ms_view_angle)²)``, ``a`` the angle between that direction and the ray to
+the camera rendering it (Geometry ``Incoming``, so every view, viewport or render, gets its own
+fade; an angle of 0 gives exactly 1 through the safe divide). The directions are taken in the
+mesh's object space, which is world space as built (a result rotated as a whole turns its
+detail's directions with it only where it is not rotated).
 """
 
 from __future__ import annotations
@@ -111,12 +121,24 @@ class _Tree:
         z = self.math("DIVIDE", self.math("SUBTRACT", t, tc), life)
         return self.math("EXPONENT", self.math("MULTIPLY", self.math("MULTIPLY", z, z), -0.5), 0.0)
 
-    def splat_points(self, aux_per_gaussian: int, lifespans: bool = False):
+    def view_binding(self, out, geo, position):
+        """Store ``ms_view_dir`` (unit, seed camera centre -> deformed ``position``) and
+        ``ms_view_angle`` on the points ``out`` (module docstring)."""
+        origin = self.sample(geo, _named_attr(self.N, "ms_view_origin", "FLOAT_VECTOR"), "FLOAT_VECTOR", self.index)
+        ray = self.math("SUBTRACT", position, origin, kind="ShaderNodeVectorMath")
+        n = self.node("ShaderNodeVectorMath", operation="NORMALIZE")
+        self.link(ray, n.inputs[0])
+        out = self.store(out, "ms_view_dir", "FLOAT_VECTOR", n.outputs["Vector"])
+        angle = self.sample(geo, _named_attr(self.N, "ms_view_angle", "FLOAT"), "FLOAT", self.index)
+        return self.store(out, "ms_view_angle", "FLOAT", angle)
+
+    def splat_points(self, aux_per_gaussian: int, lifespans: bool = False, view: bool = False):
         """A new point cloud with one point per Gaussian at its (deformed) position,
         carrying ``ms_color``/``ms_opacity``, plus the sampled ``ms_scale`` field.
 
         With ``lifespans`` the stored ``ms_opacity`` is the mesh's times
-        :meth:`lifespan_window` (the tree needs the "Frame Start" / "Frame End" inputs).
+        :meth:`lifespan_window` (the tree needs the "Frame Start" / "Frame End" inputs); with
+        ``view`` the points also carry :meth:`view_binding`'s attributes.
 
         The points are made with the Points node and Sample Index instead of Mesh to
         Points: the rig's ~N vertex groups would otherwise be copied onto every point
@@ -128,7 +150,8 @@ class _Tree:
         count = self.math("DIVIDE", size.outputs["Point Count"], float(1 + aux_per_gaussian))
         pts = self.node("GeometryNodePoints")
         self.link(count, pts.inputs["Count"])
-        self.link(self.sample(geo, self.position, "FLOAT_VECTOR", self.index), pts.inputs["Position"])
+        position = self.sample(geo, self.position, "FLOAT_VECTOR", self.index)
+        self.link(position, pts.inputs["Position"])
         scale = self.sample(geo, _named_attr(self.N, "ms_scale", "FLOAT_VECTOR"), "FLOAT_VECTOR", self.index)
         out = pts.outputs["Points"]
         out = self.store(out, "ms_color", "FLOAT_COLOR",
@@ -137,6 +160,8 @@ class _Tree:
         if lifespans:
             opacity = self.math("MULTIPLY", opacity, self.lifespan_window(geo))
         out = self.store(out, "ms_opacity", "FLOAT", opacity)
+        if view:
+            out = self.view_binding(out, geo, position)
         return geo, pts, out, scale, count
 
     def finish(self, geo, material):
@@ -158,9 +183,9 @@ def _frame_inputs(frame_range) -> tuple:
     return tuple((name, float(v), None) for name, v in zip(FRAME_INPUTS, frame_range))
 
 
-def _points_tree(material, frame_range=None):
+def _points_tree(material, frame_range=None, view: bool = False):
     t = _Tree(GN_TREE["POINTS"], inputs=(("Radius Scale", 1.0),) + _frame_inputs(frame_range))
-    _, pts, out, scale, _ = t.splat_points(0, lifespans=frame_range is not None)
+    _, pts, out, scale, _ = t.splat_points(0, lifespans=frame_range is not None, view=view)
     mean = t.math("DOT_PRODUCT", scale, (1 / 3, 1 / 3, 1 / 3), kind="ShaderNodeVectorMath")
     t.link(t.math("MULTIPLY", mean, t.gin.outputs["Radius Scale"]), pts.inputs["Radius"])
     return t.finish(out, material)
@@ -171,9 +196,9 @@ def _points_tree(material, frame_range=None):
 ICO_RADIUS, ICO_SUBDIVISIONS, CUTOFF_SIGMA = 3.3, 2, 3.0
 
 
-def _ellipsoid_tree(material, subdivisions: int = ICO_SUBDIVISIONS, frame_range=None):
+def _ellipsoid_tree(material, subdivisions: int = ICO_SUBDIVISIONS, frame_range=None, view: bool = False):
     t = _Tree(GN_TREE["ELLIPSOIDS"], inputs=_frame_inputs(frame_range))
-    geo, _, out, scale, count = t.splat_points(AUX_AXES, lifespans=frame_range is not None)
+    geo, _, out, scale, count = t.splat_points(AUX_AXES, lifespans=frame_range is not None, view=view)
     axes = []
     first_aux = t.math("ADD", count, t.math("MULTIPLY", t.index, float(AUX_AXES)))  # G + AUX·i
     for k in range(AUX_AXES):  # the deformed local x and y axes define the rotation
@@ -193,7 +218,7 @@ def _ellipsoid_tree(material, subdivisions: int = ICO_SUBDIVISIONS, frame_range=
     return t.finish(iop.outputs["Instances"], material)
 
 
-def _material(name: str, ellipsoid: bool):
+def _material(name: str, ellipsoid: bool, view: bool = False):
     mat = bpy.data.materials.new(name)
     if bpy.app.version < (5, 0, 0) and not mat.use_nodes:  # always node-based from 5.0
         mat.use_nodes = True
@@ -250,6 +275,21 @@ def _material(name: str, ellipsoid: bool):
         alpha = math("MULTIPLY", alpha, g)
         alpha = math("MULTIPLY", alpha, math("LESS_THAN", d2, CUTOFF_SIGMA ** 2))  # 3σ cut
         alpha = math("MULTIPLY", alpha, math("SUBTRACT", 1.0, geom.outputs["Backfacing"]))
+    if view:  # the view-bound Gaussians' fade with the parallax from their own camera
+        inc = N.new("ShaderNodeNewGeometry").outputs["Incoming"]
+        vdir = N.new("ShaderNodeAttribute")
+        vdir.attribute_type, vdir.attribute_name = kind, "ms_view_dir"
+        vang = N.new("ShaderNodeAttribute")
+        vang.attribute_type, vang.attribute_name = kind, "ms_view_angle"
+        cross = N.new("ShaderNodeVectorMath")
+        cross.operation = "CROSS_PRODUCT"
+        L.new(inc, cross.inputs[0])
+        L.new(vdir.outputs["Vector"], cross.inputs[1])
+        length = N.new("ShaderNodeVectorMath")
+        length.operation = "LENGTH"
+        L.new(cross.outputs["Vector"], length.inputs[0])
+        s = math("DIVIDE", length.outputs["Value"], vang.outputs["Fac"])  # 0 where the angle is 0
+        alpha = math("MULTIPLY", alpha, math("EXPONENT", math("MULTIPLY", math("MULTIPLY", s, s), -0.5)))
     L.new(math("MINIMUM", alpha, 0.99), mix.inputs["Fac"])
     return mat
 
@@ -271,8 +311,10 @@ def add_preview_modifier(mesh_obj, preview: str = "POINTS", frame_range=None):
     if old is not None:
         mesh_obj.modifiers.remove(old)
     ell = preview == "ELLIPSOIDS"
-    mat = _material("MotionSplatsEllipsoid" if ell else "MotionSplatsPoint", ell)
-    tree = _ellipsoid_tree(mat, frame_range=frame_range) if ell else _points_tree(mat, frame_range)
+    view = "ms_view_angle" in mesh_obj.data.attributes
+    mat = _material("MotionSplatsEllipsoid" if ell else "MotionSplatsPoint", ell, view)
+    tree = (_ellipsoid_tree(mat, frame_range=frame_range, view=view) if ell
+            else _points_tree(mat, frame_range, view=view))
     if mat.name not in [m.name for m in mesh_obj.data.materials if m]:
         mesh_obj.data.materials.append(mat)
     mod = mesh_obj.modifiers.new(GN_MODIFIER, "NODES")
