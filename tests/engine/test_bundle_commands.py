@@ -83,6 +83,26 @@ def test_export_ply_sequence_matches_deformation(trained, tmp_path):
     assert B.read_ply(tmp_path / "c.ply").count == last.count
 
 
+def test_ply_sequence_keeps_the_shot_detail_only_as_its_own_camera_sees_it(trained, tmp_path):
+    """A PLY has no view-dependent opacity: the view-bound Gaussians (shot detail) are left out
+    of a frame's PLY (opacity ~0), and with --shot-camera kept at what frame 1's own camera sees."""
+    trainer, out = trained
+    m = trainer.model
+    bound = (m.gauss_view_angle > 0).numpy()
+    own = bound & (np.abs(m.gauss_t_center.numpy() - float(trainer.data.times[0])) < 1e-6)
+    assert own.sum() > 10
+    for flag, name in (((), "plain"), (("--shot-camera",), "shot")):
+        res = _engine("export", out, "--ply-sequence", tmp_path / name, "--frames", "1", *flag)
+        assert res.returncode == 0, res.stderr
+    plain = B.read_ply(tmp_path / "plain" / "frame_00001.ply").opacities
+    shot = B.read_ply(tmp_path / "shot" / "frame_00001.ply").opacities
+    assert plain[bound].max() < 1e-6
+    with torch.no_grad():
+        want = m.opacities_at(float(trainer.data.times[0])).numpy()
+    np.testing.assert_allclose(shot[own], want[own], rtol=1e-4)  # the own camera: no fade
+    np.testing.assert_allclose(shot[~bound], plain[~bound], rtol=1e-6)
+
+
 def test_bad_bundle_is_a_clear_error(tmp_path):
     res = _engine("render", tmp_path / "nope", "--out", tmp_path / "o")
     assert res.returncode == 2
