@@ -26,9 +26,10 @@ LOG_LINES = 3
 #: Seconds of silence after a finished stage before the panel says the next one is being prepared.
 QUIET_S = 3.0
 #: What the box calls the engine's stages where their protocol name says little to an artist.
-STAGE_NAMES = {"compile": "compiling the engine's kernels"}
+STAGE_NAMES = {"compile": "compiling the engine's kernels", "detail": "shot detail"}
 #: A line under the progress bar for these stages (while they run).
-STAGE_HINTS = {"compile": "A first run compiles them (about a minute); later runs load them from the cache"}
+STAGE_HINTS = {"compile": "A first run compiles them (about a minute); later runs load them from the cache",
+               "detail": "Each frame's own detail of the moving things, seen from the shot's camera"}
 
 
 def stage_text(job) -> str:

@@ -127,7 +127,8 @@ class TrainConfig:
     shot_detail: str = "on"              # per-frame Gaussians of the moving things after training, fading with the
                                          # parallax from the camera that saw them (engine/train/shot_detail.py): on | off
     detail_steps_per_frame: float = 15.0 # ... trained this many steps per training frame (the seeds alone)
-    detail_seeds: int = 3000             # ... at most this many a frame, one per moving pixel before any twice
+    detail_seeds: int = 3000             # ... at most this many a frame, one per moving pixel before any twice,
+    detail_seed_max: int = 200_000       # ... and this many in all (a long clip gets fewer a frame: each costs memory)
     detail_opacity: float = 0.8          # ... each seeded at this opacity
     detail_lifespan_frames: float = 0.5  # ... shown around its own frame (sigma in training-frame intervals)
     detail_depth_error: float = 0.05     # ... its depth's relative uncertainty, and the parallax shift in pixels
@@ -254,8 +255,8 @@ class TrainConfig:
                 bad(key, "must be >= 0")
         if self.shot_detail not in ("on", "off"):
             bad("shot_detail", "must be 'on' or 'off'")
-        for key in ("detail_steps_per_frame", "detail_seeds", "detail_lifespan_frames", "detail_depth_error",
-                    "detail_fade_px"):
+        for key in ("detail_steps_per_frame", "detail_seeds", "detail_seed_max", "detail_lifespan_frames",
+                    "detail_depth_error", "detail_fade_px"):
             if not getattr(self, key) > 0:
                 bad(key, "must be > 0")
         if not 0 < self.detail_opacity < 1:  # stored as a logit

@@ -81,6 +81,13 @@ def has_detail(model) -> bool:
     return bool((model.gauss_view_angle > 0).any())
 
 
+def seeds_per_frame(cfg, train_frames: int) -> int:
+    """The most seeds a frame gets: ``detail_seeds``, fewer on a clip whose frames would
+    together pass ``detail_seed_max`` (each seed is a row of every per-Gaussian tensor and its
+    optimiser state for the rest of the run: 3,000 a frame over a 300-frame clip would be 900k)."""
+    return max(1, min(cfg.detail_seeds, cfg.detail_seed_max // max(int(train_frames), 1)))
+
+
 @torch.no_grad()
 def seed_detail(model, data, cfg, gen: torch.Generator, render) -> int:
     """Append the view-bound seeds of every training frame to ``model`` (module docstring);
@@ -90,13 +97,14 @@ def seed_detail(model, data, cfg, gen: torch.Generator, render) -> int:
     d, m = data, model
     life = cfg.detail_lifespan_frames * float(torch.diff(torch.sort(d.times[d.train_idx]).values).median())
     dyn_nodes = torch.nonzero(m.node_dyn).squeeze(1)
+    per_frame = seeds_per_frame(cfg, len(d.train_idx))
     parts = []
     for f in d.train_idx.tolist():  # frames; a frame's pixels are vectorised
         moving = d.fg[f] >= cfg.dynamic_threshold
         ys, xs = torch.nonzero(moving, as_tuple=True)
         if len(ys) == 0:
             continue
-        n = min(len(ys), cfg.detail_seeds)
+        n = min(len(ys), per_frame)
         pick = distinct_pixels(len(ys), n, gen).to(ys.device)
         ys, xs = ys[pick], xs[pick]
         out = render(f)

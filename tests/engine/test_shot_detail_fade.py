@@ -121,3 +121,13 @@ def test_bad_view_binding_names_the_node_file(tmp_path, extra, msg):
     with pytest.raises(InputError, match=msg) as err:
         B.read_nodes(tmp_path / "nodes.npz")
     assert "nodes.npz" in str(err.value)
+
+
+def test_a_long_clip_gets_fewer_detail_seeds_a_frame_within_the_total():
+    from engine.train.config import preset_config
+    from engine.train.shot_detail import seeds_per_frame
+
+    cfg = preset_config("preview")
+    assert seeds_per_frame(cfg, 60) == cfg.detail_seeds  # a preview clip: every moving pixel
+    assert seeds_per_frame(cfg, 300) * 300 <= cfg.detail_seed_max < (seeds_per_frame(cfg, 300) + 1) * 300
+    assert seeds_per_frame(preset_config("preview", detail_seed_max=10), 60) == 1  # never none
