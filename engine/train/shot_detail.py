@@ -10,7 +10,8 @@ a pixel or two off and score below the averaged model (*How near the moving obje
 must be*).
 
 So after the main training (:class:`~engine.train.trainer.Trainer`) a second stage seeds, on
-every training frame, one Gaussian per moving pixel (up to ``TrainConfig.detail_seeds``) in
+every training frame, one Gaussian per moving pixel (up to ``TrainConfig.detail_seeds``, fewer
+a frame on a clip whose frames would pass ``detail_seed_max`` in all) in
 front of the trained model's own surface there, living only around that frame
 (``gauss_lifespan``), bound to the nodes like any moving Gaussian, and **view-bound**: its
 opacity is multiplied by
@@ -34,12 +35,20 @@ own cameras gets the per-frame detail, a new view the 3D model.
 from __future__ import annotations
 
 import math
+import time
 
 import torch
 
+from ..errors import Cancelled
 from ..geometry.camera import camera_centers, ray_parallax_sin, unproject
+from . import losses as L
+from .evaluation import render_frame
+from .frame_order import epoch_frame
 from .init_model import distinct_pixels
-from .param_edit import GAUSSIAN_PARAMS, edit_rows
+from .lifespan import shown_gaussians
+from .model import SH_C0, inverse_sigmoid
+from .param_edit import GAUSSIAN_PARAMS
+from .render import render_scene
 
 #: seeds are placed this fraction of the rendered depth in front of the trained surface, so
 #: that they composite over the averaged moving Gaussians at their own frame
@@ -95,7 +104,9 @@ def seed_detail(model, data, cfg, gen: torch.Generator, render) -> int:
     frame ``f`` at its own time (its depth places the seeds). One render per frame; the pixels
     of a frame are vectorised."""
     d, m = data, model
-    life = cfg.detail_lifespan_frames * float(torch.diff(torch.sort(d.times[d.train_idx]).values).median())
+    gaps = torch.diff(torch.sort(d.times[d.train_idx]).values)
+    # a one-frame clip has no frame interval: its seeds are always visible (lifespan 0)
+    life = cfg.detail_lifespan_frames * float(gaps.median()) if len(gaps) else 0.0
     dyn_nodes = torch.nonzero(m.node_dyn).squeeze(1)
     per_frame = seeds_per_frame(cfg, len(d.train_idx))
     parts = []
@@ -127,8 +138,6 @@ def seed_detail(model, data, cfg, gen: torch.Generator, render) -> int:
     p = {k: torch.cat([q[k] for q in parts]) for k in parts[0]}
     g = len(p["x"])
     canon, bind_idx, bind_w = seed_frame_binding(m, p["x"], p["t"], dyn_nodes)
-    from .model import SH_C0, inverse_sigmoid
-
     quats = torch.zeros(g, 4, device=canon.device, dtype=canon.dtype)
     quats[:, 0] = 1
     extra = {"means": canon, "quats": quats, "log_scales": torch.log(p["scale"].clamp_min(1e-7)),
@@ -242,26 +251,17 @@ def train_detail(trainer) -> None:
     training is done, ``trainer.step >= cfg.steps``): seed (unless a resumed checkpoint already
     holds the seeds), then train the seeds until ``cfg.steps + detail_steps``. Checkpoints,
     progress and a stop request work as in the main loop (a resume continues the stage)."""
-    from . import losses as L
-    from .frame_order import epoch_frame
-    from .lifespan import shown_gaussians
-    from .render import render_scene
-
     cfg, d, m = trainer.cfg, trainer.data, trainer.model
     end = cfg.steps + detail_steps(cfg, d)
     if trainer.step >= end or not wanted(cfg, m, d):
         return
     if not has_detail(m):
-        from .evaluation import render_frame
-
         count = seed_detail(m, d, cfg, trainer.gen, lambda f: render_frame(m, d, f, backend=cfg.backend))
         trainer.opt = stage_optimizer(m, cfg)
         trainer.reporter.log(f"shot detail: {count} view-bound Gaussians on the moving pixels of "
                              f"{len(d.train_idx)} frames, {end - trainer.step} steps")
     train_idx = d.train_idx.cpu()
     trainer.reporter.progress("detail", trainer.step - cfg.steps, end - cfg.steps)
-    import time
-
     t0 = time.perf_counter()
     try:
         while trainer.step < end:
@@ -291,8 +291,6 @@ def train_detail(trainer) -> None:
                 t0 = time.perf_counter()
                 trainer.save_checkpoint()
     except KeyboardInterrupt:
-        from ..errors import Cancelled
-
         trainer.train_seconds += time.perf_counter() - t0
         path = trainer.save_checkpoint()
         raise Cancelled(f"training stopped at step {trainer.step} (shot detail); checkpoint saved to {path}") from None
