@@ -132,3 +132,18 @@ def fcurves_of(obj):
     if not hasattr(action, "layers"):
         return action.fcurves
     return action.layers[0].strips[0].channelbags[0].fcurves
+
+
+def render_cycles_exr_animation(scene, filepath: str, frames: tuple[int, int, int], samples: int) -> None:
+    """Render ``frames`` = (start, end, step) of ``scene`` with CPU Cycles, ``samples`` samples, no
+    denoising, transparent film, at full resolution, to OpenEXR files ``<filepath>NNNN.exr``."""
+    scene.render.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    scene.cycles.samples = samples
+    scene.cycles.use_denoising = False
+    scene.render.film_transparent = True
+    scene.render.resolution_percentage = 100
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.frame_start, scene.frame_end, scene.frame_step = frames
+    scene.render.filepath = filepath
+    bpy.ops.render.render(animation=True)

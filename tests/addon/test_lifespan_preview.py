@@ -179,7 +179,7 @@ def test_cycles_animation_render_follows_the_lifespan(extension, empty_scene, tm
     """An animation render evaluates the window per frame: Gaussian 1 (the image centre's
     columns; its neighbours stay outside them) is seen at its t_center (frame 11) and gone
     5 sigmas later (frame 16)."""
-    from tests.addon._support import look_at_w2c
+    from tests.addon._support import look_at_w2c, render_cycles_exr_animation
 
     W, H, f = 32, 24, 60.0
     cam = {"w2c": look_at_w2c([0.0, -4.0, 0.0]), "K": [[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]],
@@ -188,17 +188,7 @@ def test_cycles_animation_render_follows_the_lifespan(extension, empty_scene, tm
     build = extension.addon.build
     res = build.build_bundle_into_scene(bpy.context, b.path, preview="ELLIPSOIDS")
     extension.addon.render_setup.setup_render(bpy.context, res["collection"])
-    scene = bpy.context.scene
-    scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = 2
-    scene.cycles.use_denoising = False
-    scene.render.film_transparent = True
-    scene.render.resolution_percentage = 100
-    scene.render.image_settings.file_format = "OPEN_EXR"
-    scene.frame_start, scene.frame_end, scene.frame_step = 11, 16, 5
-    scene.render.filepath = str(tmp_path / "r_")
-    bpy.ops.render.render(animation=True)
+    render_cycles_exr_animation(bpy.context.scene, str(tmp_path / "r_"), (11, 16, 5), samples=2)
     centre = {}
     for frame in (11, 16):
         img = bpy.data.images.load(str(tmp_path / f"r_{frame:04d}.exr"))

@@ -89,23 +89,13 @@ def test_cycles_shows_view_bound_detail_from_its_own_camera_only(extension, empt
     import torch
 
     from engine.geometry.camera import project
-    from tests.addon._support import look_at_w2c
+    from tests.addon._support import look_at_w2c, render_cycles_exr_animation
 
     b = write_bundle(tmp_path / "b")
     build = extension.addon.build
     res = build.build_bundle_into_scene(bpy.context, b.path, preview="ELLIPSOIDS")
     extension.addon.render_setup.setup_render(bpy.context, res["collection"])
-    scene = bpy.context.scene
-    scene.render.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    scene.cycles.samples = 4
-    scene.cycles.use_denoising = False
-    scene.render.film_transparent = True
-    scene.render.resolution_percentage = 100
-    scene.render.image_settings.file_format = "OPEN_EXR"
-    scene.frame_start, scene.frame_end, scene.frame_step = FS, FE, 1
-    scene.render.filepath = str(tmp_path / "r_")
-    bpy.ops.render.render(animation=True)
+    render_cycles_exr_animation(bpy.context.scene, str(tmp_path / "r_"), (FS, FE, 1), samples=4)
     K = torch.tensor([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1]], dtype=torch.float64)
     alpha_at = {}
     for frame, eye in ((FS, EYE_OWN), (FE, EYE_OTHER)):
