@@ -173,7 +173,7 @@ class DynamicScene(nn.Module):
             t_center = self.gauss_t_center if index is None else self.gauss_t_center[index]
             opacity = opacity * lifespan_window(float(t), t_center, self.lifespans(index))
         if means is not None and view_center is not None and bool((self.gauss_view_angle > 0).any()):
-            from .shot_detail import view_fade
+            from .shot_detail import view_fade  # here: shot_detail imports this module
 
             origin, angle = self.gauss_view_origin, self.gauss_view_angle
             if index is not None:
