@@ -21,7 +21,7 @@ from .. import bundle as B
 from ..errors import InputError
 from ..geometry.binding import bind_gaussians
 from ..geometry.camera import project, unproject
-from ..geometry.dualquat import dq_apply_points, dq_blend, node_transforms_dq
+from ..geometry.dualquat import dq_apply_points, dq_blend, dq_inverse, node_transforms_dq
 from ..geometry.quaternion import quat_conj, quat_identity, quat_mul, quat_normalize
 from .config import TrainConfig
 from .data import TrainingData
@@ -29,24 +29,30 @@ from .lifespan import data_lifespan, lifespan_seed_count
 from .model import DynamicScene
 
 
+def invert_at_time(model_like, points: torch.Tensor, t: float, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Canonical points ``[P, 3]`` of world ``points [P, 3]`` observed at time ``t``, and the
+    binding they were inverted through ``(idx [P, k], w [P, k])``: each point's ``k`` nearest
+    nodes *at time t* (indices into ``model_like``'s nodes), their transforms blended and
+    inverted. Deforming the canonical points with that binding gives ``points`` back at ``t``."""
+    with torch.no_grad():
+        pos, rot = model_like.node_state(t)
+        idx, w = bind_gaussians(points, pos, model_like.node_radii(), k)
+        dq = dq_blend(node_transforms_dq(model_like.node_centers, pos, rot), idx, w)
+        # the inverse of a unit dual quaternion is its conjugate (both parts)
+        return dq_apply_points(dq_inverse(dq), points), idx, w
+
+
 def to_canonical(model_like, points: torch.Tensor, t: float, k: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Invert the node deformation at time ``t`` for world points observed at ``t``.
 
     Binds ``points [P, 3]`` to the nodes' positions *at time t*, blends the node
-    transforms and applies the inverse rigid transform. Returns canonical points
-    ``[P, 3]`` and their binding ``(idx, w)``. Exact when the bound nodes move rigidly
-    together; a good initial guess otherwise.
+    transforms and applies the inverse rigid transform (:func:`invert_at_time`). Returns
+    canonical points ``[P, 3]`` and their binding ``(idx, w)`` in canonical space. Exact when
+    the bound nodes move rigidly together; a good initial guess otherwise.
     """
+    canon = invert_at_time(model_like, points, t, k)[0]
     with torch.no_grad():
-        pos, rot = model_like.node_state(t)
-        radii = model_like.node_radii()
-        idx, w = bind_gaussians(points, pos, radii, k)
-        dq = dq_blend(node_transforms_dq(model_like.node_centers, pos, rot), idx, w)
-        qr, qd = dq[:, :4], dq[:, 4:]
-        # inverse of a unit dual quaternion is its quaternion conjugate (both parts)
-        inv = torch.cat([quat_conj(qr), quat_conj(qd)], dim=-1)
-        canon = dq_apply_points(inv, points)
-        idx_c, w_c = bind_gaussians(canon, model_like.node_centers, radii, k)
+        idx_c, w_c = bind_gaussians(canon, model_like.node_centers, model_like.node_radii(), k)
     return canon, idx_c, w_c
 
 

@@ -44,10 +44,10 @@ from ..geometry.camera import camera_centers, ray_parallax_sin, unproject
 from . import losses as L
 from .evaluation import render_frame
 from .frame_order import epoch_frame
-from .init_model import distinct_pixels
+from .init_model import _NodeSubset, distinct_pixels, invert_at_time
 from .lifespan import shown_gaussians
 from .model import SH_C0, inverse_sigmoid
-from .param_edit import GAUSSIAN_PARAMS
+from .param_edit import edit_rows
 from .render import render_scene
 
 #: seeds are placed this fraction of the rendered depth in front of the trained surface, so
@@ -98,9 +98,9 @@ def seeds_per_frame(cfg, train_frames: int) -> int:
 
 
 @torch.no_grad()
-def seed_detail(model, data, cfg, gen: torch.Generator, render) -> int:
-    """Append the view-bound seeds of every training frame to ``model`` (module docstring);
-    returns how many. ``render(f)``: the trained model's :class:`~engine.raster.RenderOutput` of
+def seed_detail(model, data, cfg, gen: torch.Generator, render, opt: torch.optim.Adam) -> int:
+    """Append the view-bound seeds of every training frame to ``model`` and to its optimiser
+    ``opt`` (:func:`~engine.train.param_edit.edit_rows`; module docstring); returns how many. ``render(f)``: the trained model's :class:`~engine.raster.RenderOutput` of
     frame ``f`` at its own time (its depth places the seeds). One render per frame; the pixels
     of a frame are vectorised."""
     d, m = data, model
@@ -149,7 +149,7 @@ def seed_detail(model, data, cfg, gen: torch.Generator, render) -> int:
                "gauss_lifespan": torch.full((g,), life, device=canon.device), "gauss_view_origin": p["origin"],
                "gauss_view_angle": p["angle"], "bind_idx": bind_idx, "bind_w": bind_w}
     rows = {name: torch.cat([getattr(m, name), value.to(getattr(m, name).dtype)]) for name, value in buffers.items()}
-    _append_params(m, extra)
+    edit_rows(m, opt, None, extra)  # the rows and their (zero) moments; the stage then builds its own Adam
     for name, value in rows.items():
         setattr(m, name, value.contiguous())
     return g
@@ -158,36 +158,21 @@ def seed_detail(model, data, cfg, gen: torch.Generator, render) -> int:
 def seed_frame_binding(model, points: torch.Tensor, times: torch.Tensor, nodes: torch.Tensor):
     """Canonical centres ``[P, 3]`` and binding ``([P, K], [P, K])`` that put world ``points
     [P, 3]`` exactly where they were seen at ``times [P]``: each bound to its ``K`` nearest of
-    ``nodes [S]`` (node ids) *as they are at its time*, and moved back through the blend of
-    those nodes' transforms. Why not :func:`~engine.train.init_model.canonicalise` (which
-    rebinds in canonical space): a binding other than the one inverted does not bring a point
-    back to its seed pixel (the stage's nodes do not train, so the binding need never change).
-    One blend per distinct time."""
-    from ..geometry.binding import bind_gaussians
-    from ..geometry.dualquat import dq_apply_points, dq_blend, dq_inverse, node_transforms_dq
-
+    ``nodes [S]`` (node ids) *as they are at its time* and moved back through the blend of those
+    nodes' transforms (:func:`~engine.train.init_model.invert_at_time`). Why not
+    :func:`~engine.train.init_model.canonicalise` (which rebinds in canonical space): a binding
+    other than the one inverted does not bring a point back to its seed pixel (the stage's nodes
+    do not train, so the binding need never change). One blend per distinct time."""
+    view = _NodeSubset(model, nodes)
     k = min(model.bind_k, len(nodes))
     canon = torch.empty_like(points)
     idx = torch.zeros(len(points), model.bind_k, dtype=torch.long, device=points.device)
     w = torch.zeros(len(points), model.bind_k, dtype=points.dtype, device=points.device)
-    radii = model.node_radii()[nodes]
     for t in torch.unique(times).tolist():  # one blend per frame
         sel = times == t
-        pos, rot = model.node_state(t)
-        i_t, w_t = bind_gaussians(points[sel], pos[nodes], radii, k)
-        i_t = nodes[i_t]
-        dq = dq_blend(node_transforms_dq(model.node_centers, pos, rot), i_t, w_t)
-        canon[sel] = dq_apply_points(dq_inverse(dq), points[sel])
-        idx[sel, :k], w[sel, :k] = i_t, w_t
+        canon[sel], i_t, w_t = invert_at_time(view, points[sel], t, k)
+        idx[sel, :k], w[sel, :k] = nodes[i_t], w_t
     return canon, idx, w
-
-
-def _append_params(model, extra: dict) -> None:
-    """Append ``extra`` rows to the model's per-Gaussian parameters (no optimiser yet: the
-    stage builds its own, :func:`stage_optimizer`)."""
-    for name in GAUSSIAN_PARAMS:
-        old = getattr(model, name)
-        setattr(model, name, torch.nn.Parameter(torch.cat([old.detach(), extra[name].to(old.dtype)]).contiguous()))
 
 
 def stage_optimizer(model, cfg) -> torch.optim.Adam:
@@ -256,11 +241,12 @@ def train_detail(trainer) -> None:
     if trainer.step >= end or not wanted(cfg, m, d):
         return
     if not has_detail(m):
-        count = seed_detail(m, d, cfg, trainer.gen, lambda f: render_frame(m, d, f, backend=cfg.backend))
+        count = seed_detail(m, d, cfg, trainer.gen, lambda f: render_frame(m, d, f, backend=cfg.backend), trainer.opt)
         trainer.opt = stage_optimizer(m, cfg)
         trainer.reporter.log(f"shot detail: {count} view-bound Gaussians on the moving pixels of "
                              f"{len(d.train_idx)} frames, {end - trainer.step} steps")
     train_idx = d.train_idx.cpu()
+    windows = {}
     trainer.reporter.progress("detail", trainer.step - cfg.steps, end - cfg.steps)
     t0 = time.perf_counter()
     try:
@@ -272,7 +258,9 @@ def train_detail(trainer) -> None:
             t = float(d.times[f])
             shown = shown_gaussians(m, t)
             means_t, quats_t = m.deform(t, index=shown)
-            (y0, y1, x0, x1), K = moving_window(d.fg[f] >= cfg.dynamic_threshold, d.K[f])
+            if f not in windows:  # a frame's window is the same at every visit
+                windows[f] = moving_window(d.fg[f] >= cfg.dynamic_threshold, d.K[f])
+            (y0, y1, x0, x1), K = windows[f]
             out = render_scene(m, means_t, quats_t, K, d.w2c[f], x1 - x0, y1 - y0, backend=cfg.backend,
                                time=t, index=shown)
             target = d.images[f, y0:y1, x0:x1]
