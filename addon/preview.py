@@ -8,7 +8,9 @@ point), radius = mean σ × "Radius Scale". ``ELLIPSOIDS`` (for Cycles): Instanc
 of an 80-face ico-sphere enclosing 3σ, scaled by σ per axis and rotated by Axes to
 Rotation of the two deformed auxiliary vertices. The ellipsoid material's alpha is
 ``opacity · exp(−½ d²)`` with ``d`` the instance-space distance from the centre to the
-camera ray (σ units), cut at 3σ; back faces are transparent; colour is emitted.
+camera ray (σ units), cut at 3σ; back faces are transparent; colour is emitted. Both
+leave out the Gaussians whose opacity (after the lifespan below) is under the engine's
+alpha threshold 1/255.
 
 Lifespans: when the mesh carries ``ms_t_center`` / ``ms_lifespan`` (a bundle whose
 Gaussians live around one time), both trees multiply the ``ms_opacity`` they store on the
@@ -37,6 +39,9 @@ PREVIEW_MODES = ("POINTS", "ELLIPSOIDS")
 GN_MODIFIER = "MotionSplatsPreview"
 GN_TREE = {"POINTS": "MotionSplatsPoints", "ELLIPSOIDS": "MotionSplatsEllipsoids"}
 AUX_AXES = 2  # auxiliary vertices per Gaussian in ELLIPSOIDS builds (local x and y axes)
+#: Opacity under which a Gaussian is left out of the preview: the engine's per-pixel alpha
+#: threshold (``engine/raster``: ``alpha = min(0.99, o exp(-sigma))``, skipped under 1/255).
+ALPHA_MIN = 1.0 / 255.0
 
 
 def _socket(sockets, name: str, index: int = 0):
@@ -164,6 +169,18 @@ class _Tree:
             out = self.view_binding(out, geo, position)
         return geo, pts, out, scale, count
 
+    def drop_invisible(self, geo, domain: str):
+        """``geo`` without the elements (``domain`` POINT or INSTANCE) whose stored
+        ``ms_opacity`` is under :data:`ALPHA_MIN`: no pixel of theirs reaches the engine's
+        alpha threshold, so the engine draws nothing of them either. For Cycles this is
+        more than speed: each one a ray passes is a transparent bounce, and past
+        ``min_transparent_bounces`` Cycles' Russian roulette turns bounces into noise."""
+        op = _named_attr(self.N, "ms_opacity", "FLOAT")
+        delete = self.node("GeometryNodeDeleteGeometry", domain=domain)
+        self.link(geo, delete.inputs["Geometry"])
+        self.link(self.math("LESS_THAN", op, ALPHA_MIN), delete.inputs["Selection"])
+        return delete.outputs["Geometry"]
+
     def finish(self, geo, material):
         setmat = self.node("GeometryNodeSetMaterial")
         setmat.inputs["Material"].default_value = material
@@ -188,7 +205,7 @@ def _points_tree(material, frame_range=None, view: bool = False):
     _, pts, out, scale, _ = t.splat_points(0, lifespans=frame_range is not None, view=view)
     mean = t.math("DOT_PRODUCT", scale, (1 / 3, 1 / 3, 1 / 3), kind="ShaderNodeVectorMath")
     t.link(t.math("MULTIPLY", mean, t.gin.outputs["Radius Scale"]), pts.inputs["Radius"])
-    return t.finish(out, material)
+    return t.finish(t.drop_invisible(out, "POINT"), material)
 
 
 #: Ico-sphere radius in σ units: subdivision 2 (80 faces) has an inradius of ~0.94 of its
@@ -215,7 +232,7 @@ def _ellipsoid_tree(material, subdivisions: int = ICO_SUBDIVISIONS, frame_range=
     t.link(ico.outputs["Mesh"], iop.inputs["Instance"])
     t.link(a2r.outputs["Rotation"], iop.inputs["Rotation"])
     t.link(scale, iop.inputs["Scale"])
-    return t.finish(iop.outputs["Instances"], material)
+    return t.finish(t.drop_invisible(iop.outputs["Instances"], "INSTANCE"), material)
 
 
 def _material(name: str, ellipsoid: bool, view: bool = False):

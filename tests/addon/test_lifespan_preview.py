@@ -2,7 +2,8 @@
 
 A Gaussian with ``gauss_lifespan > 0`` is seen at engine time ``t`` with opacity
 ``opacity · exp(−½ ((t − gauss_t_center) / gauss_lifespan)²)``; the preview's Geometry
-Nodes tree passes that, per frame, to the material as ``ms_opacity``.
+Nodes tree passes that, per frame, to the material as ``ms_opacity``, and leaves out the
+Gaussians it puts under the engine's alpha threshold 1/255.
 """
 
 from __future__ import annotations
@@ -48,6 +49,16 @@ def expected_opacity(b, frame) -> np.ndarray:
     return op * np.exp(-0.5 * z ** 2)
 
 
+ALPHA_MIN = 1.0 / 255.0  # the engine's alpha threshold (engine/raster)
+ICO_VERTICES = 42  # the ellipsoid preview's ico-sphere (subdivision 2)
+
+
+def visible(opacity) -> np.ndarray:
+    """The opacities the preview keeps, in order: those at or over :data:`ALPHA_MIN`."""
+    opacity = np.asarray(opacity)
+    return opacity[opacity >= ALPHA_MIN]
+
+
 def _realized_opacity(obj, dg) -> np.ndarray:
     """Blender < 4.5 exposes no instance attributes: realize the instances in a temporary
     modifier and read one value per instance (Realize Instances copies an instance's
@@ -72,7 +83,7 @@ def _realized_opacity(obj, dg) -> np.ndarray:
     finally:
         obj.modifiers.remove(mod)
         bpy.data.node_groups.remove(tree)
-    per = vals.reshape(int(obj["ms_gaussians"]), -1)  # instance-major, one ico-sphere each
+    per = vals.reshape(-1, ICO_VERTICES)  # instance-major, one ico-sphere each
     assert (per == per[:, :1]).all()
     return per[:, 0]
 
@@ -126,12 +137,14 @@ def test_opacity_follows_the_lifespan(extension, empty_scene, tmp_path, preview)
         scene.frame_set(int(f), subframe=f - int(f))
         got = evaluated_opacity(mesh)
         want = expected_opacity(b, f)
-        np.testing.assert_allclose(got, want, atol=2e-6, err_msg=f"frame {f}")
+        np.testing.assert_allclose(got, visible(want), atol=2e-6, err_msg=f"frame {f}")
         assert got[0] == np.float32(b.gaussians.opacities[0]), f  # always visible: factor exactly 1
     scene.frame_set(int(peak))
-    assert abs(evaluated_opacity(mesh)[1] - b.gaussians.opacities[1]) < 1e-6
-    scene.frame_set(int(peak) + 5)
-    assert evaluated_opacity(mesh)[1] < 1e-5  # 5 sigmas away
+    got = evaluated_opacity(mesh)
+    assert len(got) == 2 and abs(got[1] - b.gaussians.opacities[1]) < 1e-6  # Gaussian 2 4 sigmas away: out
+    scene.frame_set(int(peak) + 5)  # Gaussian 1 5 sigmas away: left out; 2 at 1.5 sigmas: in
+    np.testing.assert_allclose(evaluated_opacity(mesh), [b.gaussians.opacities[0], expected_opacity(b, peak + 5)[2]],
+                               atol=2e-6)
 
 
 def test_rebuild_and_blend_keep_the_lifespans(extension, empty_scene, tmp_path):
@@ -145,7 +158,8 @@ def test_rebuild_and_blend_keep_the_lifespans(extension, empty_scene, tmp_path):
     bpy.ops.wm.open_mainfile(filepath=path)
     for f in (7, 11, 13):
         bpy.context.scene.frame_set(f)
-        np.testing.assert_allclose(evaluated_opacity(bpy.data.objects[name]), expected_opacity(b, f), atol=2e-6)
+        np.testing.assert_allclose(evaluated_opacity(bpy.data.objects[name]), visible(expected_opacity(b, f)),
+                                   atol=2e-6)
 
 
 @pytest.mark.parametrize("lifespans", ["absent", "all zero"])
@@ -165,6 +179,22 @@ def test_without_lifespans_the_preview_is_unchanged(extension, empty_scene, tmp_
         for f in (FS, 11, FE):
             bpy.context.scene.frame_set(f)
             np.testing.assert_array_equal(evaluated_opacity(mesh), b.gaussians.opacities.astype(np.float32))
+
+
+@pytest.mark.parametrize("preview", ["POINTS", "ELLIPSOIDS"])
+def test_gaussians_under_the_alpha_threshold_are_left_out(extension, empty_scene, tmp_path, preview):
+    """Nothing of a Gaussian under opacity 1/255 reaches the engine's image; the preview
+    leaves it out too (for Cycles each one a ray passes would be a transparent bounce)."""
+    build = extension.addon.build
+    b = write_bundle(tmp_path / "b", lifespans=False)
+    op = np.array([0.8, 0.999 * ALPHA_MIN, 1.001 * ALPHA_MIN])
+    g = b.gaussians
+    g.opacity_logits = np.log(op / (1 - op)).astype(np.float32)
+    bio.save_bundle(tmp_path / "c", b.scene, b.nodes, g)
+    res = build.build_bundle_into_scene(bpy.context, str(tmp_path / "c"), preview=preview, camera=False)
+    assert len(res["mesh"].data.vertices) == 3 * (3 if preview == "ELLIPSOIDS" else 1)  # the mesh keeps all
+    bpy.context.scene.frame_set(FS)
+    np.testing.assert_allclose(evaluated_opacity(res["mesh"]), op[[0, 2]], rtol=1e-5)
 
 
 def test_preview_modifier_needs_the_frame_range(extension, empty_scene, tmp_path):

@@ -33,6 +33,7 @@ def test_build_leaves_render_settings_alone(extension, empty_scene, tmp_path):
     extension.addon.build.build_bundle_into_scene(bpy.context, make_bundle(tmp_path / "b").path)
     assert scene.view_settings.view_transform == "AgX"
     assert scene.cycles.transparent_max_bounces == 8
+    assert scene.cycles.min_transparent_bounces == 0
     assert (scene.render.resolution_x, scene.render.resolution_y) == (1920, 1080)
     assert scene.camera == cam and not cube.hide_render
 
@@ -50,6 +51,7 @@ def test_setup_render_makes_the_result_renderable(extension, registered, tmp_pat
     assert scene.render.engine == "CYCLES"
     assert scene.view_settings.view_transform == "Standard" and scene.view_settings.look == "None"
     assert scene.cycles.transparent_max_bounces >= 1024
+    assert scene.cycles.min_transparent_bounces >= 64  # no Russian-roulette noise through the splats
     assert tuple(scene.world.color) == (0.0, 0.0, 0.0)
     assert cube.hide_render  # the factory Cube no longer hides the splats
     assert col["ms_preview"] == "ELLIPSOIDS"
