@@ -54,12 +54,14 @@ def test_bench_cycles_rows(tmp_path):
     for f in frames:  # both renders are kept for a look
         assert (tmp_path / "work" / "cycles" / f"frame_{f:05d}.png").is_file()
         assert (tmp_path / "work" / "engine" / f"frame_{f:05d}.png").is_file()
-    # the known answer: Cycles path-traces the same bundle the engine rasterises, so with
-    # more samples its noise falls and the two agree at the goal level (measured on this
-    # scene: 18.1 dB at 2 samples, 25.7 dB at 16)
+    # the known answer: Cycles path-traces the same bundle the engine rasterises; with Set Up
+    # Render's minimum transparent bounces (no Russian roulette through the splats) even 2
+    # samples agree closely, and 16 reach the goal (measured on this scene: 25.5 dB at 2
+    # samples, 27.9 at 16; 18.1 and 25.7 with Cycles' default of 0)
+    assert mean["psnr_db"] > 22.0, mean
     r = subprocess.run([sys.executable, "-m", "engine.bench", "cycles", "--clip", str(tmp_path / "clip"), "--steps",
                         "3", "--samples", "16", "--work", str(tmp_path / "work16"), "--json"],
                        cwd=REPO, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     mean16 = [json.loads(line) for line in r.stdout.splitlines()][-1]
-    assert mean16["psnr_db"] > mean["psnr_db"] + 3.0 and mean16["psnr_db"] > 22.0, (mean["psnr_db"], mean16)
+    assert mean16["psnr_db"] > mean["psnr_db"] + 1.0 and mean16["psnr_db"] >= 25.0, (mean["psnr_db"], mean16)
