@@ -7,6 +7,12 @@ from pathlib import Path
 
 import pytest
 
+# Tests that train in-process run under the thread settings of `python -m engine`
+# (engine/__main__.py), set before anything imports torch. Without it, libgomp's spinning
+# idle threads in one pytest worker take the cores the other worker needs: a 64x48 training
+# of many small ops took 429 s beside one busy torch process instead of 65 s alone.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("MOTION_SPLATS_SHARED", REPO.parent / "shared"))
 
