@@ -45,7 +45,7 @@ def render_training_rows(bundle, cams: list[dict], clip_path=None, device: str =
 
     from .commands._common import pick_device
     from .commands.eval import _camera_frame, _mask_for, _open_clip_for
-    from .train.model import model_from_bundle
+    from .train.from_bundle import model_from_bundle
     from .train.render import render_scene
 
     clip, path = _open_clip_for(bundle, clip_path)

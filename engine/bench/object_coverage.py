@@ -66,7 +66,7 @@ def kept_on_objects(bundle_dir, scene_dir) -> dict:
 
     from ..bundle import load_bundle
     from ..geometry.camera import project
-    from ..train.model import model_from_bundle
+    from ..train.from_bundle import model_from_bundle
     from .node_motion import bundle_train_frames
 
     bundle = load_bundle(bundle_dir)

@@ -191,7 +191,7 @@ def evaluate_bundle(bundle_dir, clip_path=None, lpips_onnx=None, split: str = "v
     from ..errors import InputError
     from ..fsutil import atomic_write_json
     from ..train import losses as L
-    from ..train.model import model_from_bundle
+    from ..train.from_bundle import model_from_bundle
     from ..train.render import render_scene
     from ._common import pick_device
 

@@ -35,7 +35,7 @@ def run(args, reporter):
 
     from .. import bundle as B
     from ..errors import InputError
-    from ..train.model import model_from_bundle
+    from ..train.from_bundle import model_from_bundle
     from ._common import parse_frames
 
     if not args.ply and not args.ply_sequence:

@@ -110,7 +110,7 @@ def finetune_appearance(model, views, steps: int, config=None, seed: int = 0, ba
                         reporter=None) -> dict:
     """Optimise ``model``'s appearance on ``views`` for ``steps`` steps; motion and centres stay fixed.
 
-    ``model`` must have locked trajectories (:func:`engine.train.model.model_from_bundle`
+    ``model`` must have locked trajectories (:func:`engine.train.from_bundle.model_from_bundle`
     sets the bundle's explicit tangents). Returns ``{"steps", "psnr_before", "psnr_after",
     "kept_original", "seconds"}``; when the training-view PSNR got worse the original
     appearance is restored (``kept_original``).
@@ -271,7 +271,7 @@ def _finetune(args, reporter):
     from .. import bundle as B
     from ..errors import Cancelled
     from ..train.config import TrainConfig
-    from ..train.model import model_from_bundle
+    from ..train.from_bundle import model_from_bundle
     from ..train.warmup import warm_kernels
     from ._common import pick_device
 

@@ -56,7 +56,7 @@ def run(args, reporter):
     from ..bundle import check_output_dir, time_of_frame
     from ..errors import InputError
     from ..fsutil import atomic_path
-    from ..train.model import model_from_bundle
+    from ..train.from_bundle import model_from_bundle
     from ..train.render import render_scene
     from ._common import parse_frames, pick_device
 

@@ -11,7 +11,7 @@ import torch
 
 from engine import bundle as B
 from engine.train.config import preset_config
-from engine.train.model import model_from_bundle
+from engine.train.from_bundle import model_from_bundle
 from engine.train.trainer import Trainer
 
 from .synthetic_training import make_nodes, make_scene

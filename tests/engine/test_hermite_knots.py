@@ -66,7 +66,7 @@ def test_the_engine_moves_gaussians_alike_with_a_split_knot(tmp_path):
     split knot (key_mask False). The engine's consumers of nodes.npz (model_from_bundle:
     render, export, eval, finetune) read it as an ordinary knot; the motion is unchanged."""
     from engine import bundle as B
-    from engine.train.model import model_from_bundle
+    from engine.train.from_bundle import model_from_bundle
 
     from .test_bundle import _gaussians, _nodes
 

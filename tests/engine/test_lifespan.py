@@ -18,7 +18,7 @@ from engine.train.config import preset_config
 from engine.train.export import bundle_arrays
 from engine.train.init_model import build_model
 from engine.train.lifespan import camera_translates, lifespan_window, resolve_lifespan
-from engine.train.model import model_from_bundle
+from engine.train.from_bundle import model_from_bundle
 from engine.train.render import render_scene
 
 from .synthetic_training import make_nodes, make_scene

@@ -43,7 +43,7 @@ def test_train_command_end_to_end(synth_scene, tmp_path):
 
     from engine.bench.oracle import write_oracle_priors
     from engine.bench.still_plate import bundle_split_frames, still_plate_scores
-    from engine.train.model import model_from_bundle
+    from engine.train.from_bundle import model_from_bundle
 
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     from test_moving_objects import silhouette_iou

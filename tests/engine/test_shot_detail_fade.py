@@ -87,7 +87,7 @@ def _nodes_with_view(g=50, **extra):
 
 
 def test_view_binding_round_trips_through_the_bundle_and_into_the_model(tmp_path):
-    from engine.train.model import model_from_bundle
+    from engine.train.from_bundle import model_from_bundle
 
     g = 50
     origin = np.random.default_rng(1).normal(size=(g, 3)).astype(np.float32)
