@@ -150,9 +150,9 @@ def distinct_pixels(available: int, n: int, gen: torch.Generator) -> torch.Tenso
     return torch.cat(passes)[:n]
 
 
-class _NodeSubset(torch.nn.Module):
+class NodeSubset(torch.nn.Module):
     """Nodes ``sel [S]`` of a model (every node for ``slice(None)``), as the node-only view
-    :func:`to_canonical` reads; used before the Gaussians exist."""
+    :func:`invert_at_time` reads (indices it returns are into ``sel``)."""
 
     def __init__(self, model: DynamicScene, sel: torch.Tensor | slice):
         super().__init__()
@@ -176,7 +176,7 @@ def canonicalise(probe: DynamicScene, pts: torch.Tensor, tms: torch.Tensor, node
     ``node_sel`` (all when None); one inversion per distinct time."""
     if identity or len(pts) == 0:
         return pts.clone()
-    view = _NodeSubset(probe, slice(None) if node_sel is None else node_sel)
+    view = NodeSubset(probe, slice(None) if node_sel is None else node_sel)
     canon = torch.empty_like(pts)
     for t in torch.unique(tms).tolist():  # one inversion per observation time
         sel = tms == t

@@ -44,7 +44,7 @@ from ..geometry.camera import camera_centers, ray_parallax_sin, unproject
 from . import losses as L
 from .evaluation import render_frame
 from .frame_order import epoch_frame
-from .init_model import _NodeSubset, distinct_pixels, invert_at_time
+from .init_model import NodeSubset, distinct_pixels, invert_at_time
 from .lifespan import shown_gaussians
 from .model import SH_C0, inverse_sigmoid
 from .param_edit import edit_rows
@@ -100,9 +100,10 @@ def seeds_per_frame(cfg, train_frames: int) -> int:
 @torch.no_grad()
 def seed_detail(model, data, cfg, gen: torch.Generator, render, opt: torch.optim.Adam) -> int:
     """Append the view-bound seeds of every training frame to ``model`` and to its optimiser
-    ``opt`` (:func:`~engine.train.param_edit.edit_rows`; module docstring); returns how many. ``render(f)``: the trained model's :class:`~engine.raster.RenderOutput` of
-    frame ``f`` at its own time (its depth places the seeds). One render per frame; the pixels
-    of a frame are vectorised."""
+    ``opt`` (:func:`~engine.train.param_edit.edit_rows`; module docstring); returns how many.
+    ``render(f)``: the trained model's :class:`~engine.raster.RenderOutput` of frame ``f`` at
+    its own time (its depth places the seeds). One render per frame; the pixels of a frame are
+    vectorised."""
     d, m = data, model
     gaps = torch.diff(torch.sort(d.times[d.train_idx]).values)
     # a one-frame clip has no frame interval: its seeds are always visible (lifespan 0)
@@ -163,7 +164,7 @@ def seed_frame_binding(model, points: torch.Tensor, times: torch.Tensor, nodes: 
     :func:`~engine.train.init_model.canonicalise` (which rebinds in canonical space): a binding
     other than the one inverted does not bring a point back to its seed pixel (the stage's nodes
     do not train, so the binding need never change). One blend per distinct time."""
-    view = _NodeSubset(model, nodes)
+    view = NodeSubset(model, nodes)
     k = min(model.bind_k, len(nodes))
     canon = torch.empty_like(points)
     idx = torch.zeros(len(points), model.bind_k, dtype=torch.long, device=points.device)
